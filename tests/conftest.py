@@ -1,0 +1,57 @@
+"""Shared fixtures: the real SUN3D pair that ships beside the project, and small random scenes."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+SHARED = Path(__file__).resolve().parents[2] / "shared"
+SUN3D_PAIR = SHARED / "data" / "real" / "sun3d_train_0.1m_to_0.2m_00000"
+
+DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
+
+
+def relative_motion(pose1: np.ndarray, pose2: np.ndarray) -> np.ndarray:
+    """World-to-camera 3x4 poses -> (4, 4) transform X2 = R12 X1 + t12 (spec section 2)."""
+    r1, t1, r2, t2 = pose1[:, :3], pose1[:, 3], pose2[:, :3], pose2[:, 3]
+    r12 = r2 @ r1.T
+    out = np.eye(4)
+    out[:3, :3], out[:3, 3] = r12, t2 - r12 @ t1
+    return out
+
+
+@pytest.fixture(scope="session")
+def sun3d_pair() -> dict:
+    """The real SUN3D pair: depths (480, 640) in metres (0 = invalid), K, relative pose."""
+    if not SUN3D_PAIR.is_dir():
+        pytest.fail(f"the real SUN3D pair is missing: {SUN3D_PAIR}")
+    poses = np.loadtxt(SUN3D_PAIR / "poses.txt").reshape(-1, 3, 4)
+    return {
+        "depth1": np.load(SUN3D_PAIR / "0000.npy"),
+        "depth2": np.load(SUN3D_PAIR / "0001.npy"),
+        "K": np.loadtxt(SUN3D_PAIR / "cam.txt"),
+        "T12": relative_motion(poses[0], poses[1]),
+    }
+
+
+def random_scene(batch: int, height: int, width: int, dtype=torch.float64, seed: int = 0):
+    """A smooth random inverse-depth field (depth 1.5-6) and a well-conditioned motion."""
+    g = torch.Generator().manual_seed(seed)
+    coarse = torch.rand(batch, 1, 4, 5, generator=g, dtype=torch.float64)
+    inv = 1 / (1.5 + 4.5 * torch.nn.functional.interpolate(
+        coarse, size=(height, width), mode="bilinear", align_corners=False))
+    r = (torch.rand(batch, 3, generator=g, dtype=torch.float64) - 0.5) * 0.2
+    t = torch.randn(batch, 3, generator=g, dtype=torch.float64)
+    t[:, 0] += 2 * torch.sign(t[:, 0])  # mostly sideways: large triangulation angles
+    t = t / t.norm(dim=1, keepdim=True) * 0.5
+    intrinsics = torch.tensor([[0.89115971, 1.18821287, 0.5, 0.5]] * batch, dtype=torch.float64)
+    return inv.to(dtype), torch.cat([r, t], 1).to(dtype), intrinsics.to(dtype)
+
+
+def rotation_about(axis, degrees: float) -> np.ndarray:
+    axis = np.asarray(axis, dtype=np.float64)
+    return axis / np.linalg.norm(axis) * math.radians(degrees)
