@@ -101,6 +101,15 @@ def bench_geometry(repeats: int) -> str:
         ratio = f"{seconds / remap_s:.2f}x cv2.remap ({remap_s * 1e3:.2f} ms)" if name == "warp_image" else ""
         rows.append((name, f"{seconds * 1e3:.2f}", f"{mpix / seconds:.1f}", ratio))
 
+    # Where the warp's time goes: the sampling kernel alone on the same samples (no mask).
+    grid = torch.stack([(2 * torch.from_numpy(mx) + 1) / width - 1 for mx, _ in maps]
+                       + [(2 * torch.from_numpy(my) + 1) / height - 1 for _, my in maps])
+    grid = grid.view(2, batch, height, width).permute(1, 2, 3, 0).contiguous()
+    sample_s = measure(lambda: torch.nn.functional.grid_sample(
+        image, grid, mode="bilinear", padding_mode="zeros", align_corners=False), repeats)
+    rows.insert(1, ("  of which grid_sample alone", f"{sample_s * 1e3:.2f}", f"{mpix / sample_s:.1f}",
+                    f"{sample_s / remap_s:.2f}x cv2.remap"))
+
     # Rotation conversions against cv2.Rodrigues (one call per rotation, as OpenCV offers).
     for n in (batch, 4096):
         r = (torch.rand(n, 3, generator=torch.Generator().manual_seed(1)) - 0.5) * 2

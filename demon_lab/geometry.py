@@ -373,16 +373,18 @@ def warp_image(image: Tensor, flow: Tensor) -> Tensor:
     if flow.shape[0] != batch or flow.shape[2:] != image.shape[2:]:
         raise ValueError(f"flow: expected shape ({batch}, 2, {height}, {width}) to match image, "
                          f"got {tuple(flow.shape)}")
-    # grid_sample's align_corners=False grid is 2 u - 1 in normalised coordinates u, so the
-    # sample grid is 2 (u + flow) - 1. Pixel index p = x + W flow has its 4 neighbours inside
-    # iff 0 <= p < W - 1, i.e. lo <= grid < -lo with lo = 1/W - 1 (likewise for y).
+    # Pixel index p = x + W flow has its 4 neighbours inside iff 0 <= p <= W - 2 after floor,
+    # i.e. -x <= W flow < W - 1 - x (likewise for y); NaN compares False.
+    xs = torch.arange(width, dtype=flow.dtype, device=flow.device)
+    ys = torch.arange(height, dtype=flow.dtype, device=flow.device).view(height, 1)
+    px, py = width * flow[:, 0], height * flow[:, 1]
+    inside = (px >= -xs) & (px < (width - 1) - xs) & (py >= -ys) & (py < (height - 1) - ys)
+    # Samples outside (and NaN) are moved far out of the image, where grid_sample gives 0.
+    flow = torch.where(inside.unsqueeze(1), flow, torch.full_like(flow[:1, :1, :1, :1], -4.0))
+    # grid_sample's align_corners=False grid is 2 u - 1 in normalised coordinates u.
     u, v = _normalised_grid(height, width, flow)
     base = torch.stack(torch.broadcast_tensors(2 * u - 1, 2 * v - 1), dim=-1)  # (1, H, W, 2)
     grid = torch.addcmul(base, flow.permute(0, 2, 3, 1), flow.new_tensor(2.0))
-    lo = base[0, 0, 0]
-    inside = (grid >= lo) & (grid < -lo)  # False for NaN flow
-    inside = inside[..., 0] & inside[..., 1]
-    grid = grid.masked_fill(~inside.unsqueeze(-1), -4.0)  # far outside: grid_sample gives 0
     return F.grid_sample(image, grid.to(image.dtype), mode="bilinear", padding_mode="zeros",
                          align_corners=False)
 
@@ -440,18 +442,6 @@ def _unit(n: Tensor) -> Tensor:
     """Normalise along dim 1; zero vectors stay zero (they are rejected by the caller)."""
     norm2 = (n * n).sum(1, keepdim=True)
     return n * torch.rsqrt(torch.where(norm2 > 0, norm2, torch.ones_like(norm2)))
-    c = P[:, :, 1:-1, 1:-1]
-    right, left = P[:, :, 1:-1, 2:], P[:, :, 1:-1, :-2]
-    down, up = P[:, :, 2:, 1:-1], P[:, :, :-2, 1:-1]
-    n1 = F.normalize(torch.linalg.cross(c - right, down - c, dim=1), dim=1, eps=1e-30)
-    n0 = F.normalize(torch.linalg.cross(c - left, up - c, dim=1), dim=1, eps=1e-30)
-    n = n1 + n0
-    norm = n.norm(dim=1, keepdim=True)
-    v = valid[:, :, 1:-1, 1:-1] & valid[:, :, 1:-1, 2:] & valid[:, :, 1:-1, :-2] \
-        & valid[:, :, 2:, 1:-1] & valid[:, :, :-2, 1:-1] & (norm > 0)
-    n = n / torch.where(norm > 0, norm, torch.ones_like(norm))
-    out[:, :, 1:-1, 1:-1] = torch.where(v, n, torch.full_like(n, math.nan))
-    return out
 
 
 # ----------------------------------------------------------------------------- loss helpers
