@@ -256,6 +256,31 @@ def reproject(
     return torch.where(valid.unsqueeze(1), coords, nan.unsqueeze(1)), inv2.unsqueeze(1)
 
 
+def triangulation_angle(inv_depth: Tensor, motion: Tensor, intrinsics: Tensor) -> Tensor:
+    """Angle at each view-1 point between the rays to the two camera centres, in degrees.
+
+    With X the 3-D point of a pixel (camera-1 coordinates), C1 = 0 and C2 = -R^T t, this is the
+    angle between C1 - X and C2 - X. NaN where the depth is invalid.
+
+    Returns:
+        (B, 1, H, W) degrees.
+    """
+    _check_map("inv_depth", inv_depth, 1)
+    batch, _, height, width = inv_depth.shape
+    _check_vectors("motion", motion, 6, batch)
+    _check_intrinsics("intrinsics", intrinsics, batch)
+    motion, intrinsics = motion.to(inv_depth.dtype), intrinsics.to(inv_depth.dtype)
+    valid = valid_depth(inv_depth)
+    z = 1 / torch.where(valid, inv_depth, torch.ones_like(inv_depth))
+    X = z * _rays(height, width, intrinsics)
+    R = angle_axis_to_matrix(motion[:, :3])
+    c2 = -(R.transpose(1, 2) @ motion[:, 3:, None])[:, :, 0]
+    a, b = -X, c2[:, :, None, None] - X
+    cos = (a * b).sum(1, keepdim=True) / (a.norm(dim=1, keepdim=True) * b.norm(dim=1, keepdim=True))
+    angle = torch.rad2deg(torch.acos(cos.clamp(-1, 1)))
+    return torch.where(valid, angle, torch.full_like(angle, math.nan))
+
+
 def visibility_mask(
     inv_depth: Tensor, motion: Tensor, intrinsics: Tensor, intrinsics2: Tensor | None = None
 ) -> Tensor:

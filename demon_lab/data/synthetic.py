@@ -1,0 +1,435 @@
+"""Procedural two-view scenes with perfect ground truth (in the spirit of Scenes11 and Blendswap).
+
+A scene is a ground plane (outdoor presets) or a room (indoor preset) plus random boxes, slabs and
+spheres, textured with scikit-image's photographs and procedural patterns and lit by one
+directional light plus ambient light (Lambertian, so a surface looks the same from both views).
+Images are rendered by exact ray casting (2x2 supersampling for colour; depth, normals and
+visibility from the ray through each pixel centre), so depth of both views, motion, flow and
+occlusion-aware visibility are exact.
+
+Camera pairs follow presets whose rotation and triangulation-angle statistics reproduce the
+supplementary's Table 1 (``python -m demon_lab.data_stats`` measures them). Pairs are filtered as
+the supplementary describes: at least 50 % of view-1 pixels visible in view 2 and a minimum
+baseline.
+
+Determinism: a sample is a pure function of (preset, seed, size). Per-pixel work uses only
+correctly rounded IEEE operations (+, -, *, /, sqrt, floor) in float64 numpy, no BLAS and no
+transcendental functions, so the same seed gives byte-identical samples on any machine.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+
+from demon_lab import geometry as geo
+from demon_lab.data.sample import Sample, make_sample
+from demon_lab.data.textures import sample_texture, texture_bank
+
+EPS = 1e-9
+
+
+@dataclasses.dataclass(frozen=True)
+class Preset:
+    """How scenes and camera pairs are drawn. Angles in degrees, lengths in scene units (~metres)."""
+
+    name: str
+    indoor: bool
+    tri_mean: float  # triangulation angle at the look-at point: gamma distribution
+    tri_std: float
+    convergence: float  # 1: camera 2 looks at the same point; 0: parallel to camera 1
+    look_noise: float  # std of extra rotation of camera 2 (degrees, per axis)
+    roll_std: float
+    distance: tuple[float, float]  # camera 1 to look-at point
+    n_objects: tuple[int, int]
+    floating: float  # fraction of objects that float above the ground
+    object_size: tuple[float, float]
+    min_baseline: float = 0.05
+    min_visible: float = 0.5
+    photorealistic: bool = False
+    perfect_gt: bool = True
+
+
+PRESETS = {
+    p.name: p
+    for p in (
+        Preset("synthetic_scenes11", indoor=False, tri_mean=5.3, tri_std=4.4, convergence=0.55,
+               look_noise=1.2, roll_std=0.8, distance=(3.0, 9.0), n_objects=(4, 10),
+               floating=0.5, object_size=(0.4, 2.0)),
+        Preset("synthetic_sun3d", indoor=True, tri_mean=5.7, tri_std=5.0, convergence=0.5,
+               look_noise=7.0, roll_std=3.5, distance=(1.5, 4.0), n_objects=(3, 8),
+               floating=0.0, object_size=(0.3, 1.2)),
+        Preset("synthetic_mvs", indoor=False, tri_mean=38.0, tri_std=22.0, convergence=1.0,
+               look_noise=10.0, roll_std=8.0, distance=(6.0, 14.0), n_objects=(6, 14),
+               floating=0.0, object_size=(1.0, 4.0)),
+    )
+}
+
+
+# ----------------------------------------------------------------------------- scenes
+
+
+@dataclasses.dataclass
+class Primitive:
+    kind: str  # "plane" (z = 0), "box", "room" (a box seen from inside), "sphere"
+    center: np.ndarray
+    rotation: np.ndarray  # local -> world
+    size: np.ndarray  # box half-extents, or (radius, radius, radius)
+    texture: int
+    texture_scale: float  # scene units per texture tile
+    tint: np.ndarray
+
+
+@dataclasses.dataclass
+class Scene:
+    primitives: list[Primitive]
+    light: np.ndarray  # unit vector towards the light
+    ambient: float
+    room: np.ndarray | None  # room half-extents (indoor)
+
+
+def _rot_z(angle: float) -> np.ndarray:
+    c, s = math.cos(angle), math.sin(angle)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def _rot_axis(axis: np.ndarray, angle: float) -> np.ndarray:
+    return geo.angle_axis_to_matrix(
+        __import__("torch").from_numpy(axis / np.linalg.norm(axis) * angle)[None])[0].numpy()
+
+
+def _unit(v: np.ndarray) -> np.ndarray:
+    return v / np.linalg.norm(v)
+
+
+def random_scene(rng: np.random.Generator, preset: Preset) -> Scene:
+    n_tex = len(texture_bank())
+
+    def material() -> dict:
+        tint = 0.6 + 0.4 * rng.random(3)
+        return {"texture": int(rng.integers(n_tex)), "texture_scale": float(rng.uniform(0.5, 3.0)),
+                "tint": tint}
+
+    prims: list[Primitive] = []
+    room = None
+    if preset.indoor:
+        room = np.array([rng.uniform(2.0, 4.0), rng.uniform(2.0, 4.0), rng.uniform(1.3, 1.7)])
+        prims.append(Primitive("room", np.array([0.0, 0.0, room[2]]), np.eye(3), room, **material()))
+    else:
+        prims.append(Primitive("plane", np.zeros(3), np.eye(3), np.zeros(3), **material()))
+    lo, hi = preset.object_size
+    extent = 0.8 * room[:2] if room is not None else np.array([4.0, 4.0])
+    for _ in range(int(rng.integers(preset.n_objects[0], preset.n_objects[1] + 1))):
+        kind = rng.choice(["box", "box", "slab", "sphere"])
+        xy = (rng.random(2) * 2 - 1) * extent
+        if kind == "sphere":
+            r = rng.uniform(lo, hi) / 2
+            size = np.array([r, r, r])
+        elif kind == "slab":
+            size = np.array([rng.uniform(lo, hi), rng.uniform(lo, hi), rng.uniform(0.03, 0.1)]) / 2
+        else:
+            size = rng.uniform(lo, hi, 3) / 2
+        floating = rng.random() < preset.floating
+        z = size[2] + (rng.uniform(0.2, 2.0) if floating else 0.0)
+        rot = _rot_z(rng.uniform(0, 2 * math.pi))
+        if floating or kind == "slab":
+            axis = np.array([rng.normal(), rng.normal(), 0.0])
+            rot = _rot_axis(axis, rng.uniform(-0.6, 0.6)) @ rot
+        prims.append(Primitive("sphere" if kind == "sphere" else "box",
+                               np.array([xy[0], xy[1], z]), rot, size, **material()))
+    elevation = rng.uniform(0.4, 1.2)
+    azimuth = rng.uniform(0, 2 * math.pi)
+    light = np.array([math.cos(azimuth) * math.cos(elevation), math.sin(azimuth) * math.cos(elevation),
+                      math.sin(elevation)])
+    return Scene(prims, light, float(rng.uniform(0.35, 0.55)), room)
+
+
+# ----------------------------------------------------------------------------- ray casting
+
+
+def _matvec_t(m: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """(m^T d_i) for rows d_i of (N, 3), with explicit sums (no BLAS: identical everywhere)."""
+    return np.stack([d[:, 0] * m[0, k] + d[:, 1] * m[1, k] + d[:, 2] * m[2, k] for k in range(3)], 1)
+
+
+def _matvec(m: np.ndarray, d: np.ndarray) -> np.ndarray:
+    return np.stack([d[:, 0] * m[k, 0] + d[:, 1] * m[k, 1] + d[:, 2] * m[k, 2] for k in range(3)], 1)
+
+
+def _intersect(p: Primitive, origin: np.ndarray, dirs: np.ndarray):
+    """Nearest hit t > EPS along origin + t dirs: (t, local normal, local point); t = inf if none."""
+    n = dirs.shape[0]
+    inf = np.full(n, np.inf)
+    if p.kind == "plane":
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = -origin[2] / dirs[:, 2]
+        t = np.where(np.isfinite(t) & (t > EPS), t, inf)
+        normal = np.zeros((n, 3))
+        normal[:, 2] = 1.0 if origin[2] >= 0 else -1.0
+        return t, normal, origin[None] + t[:, None] * dirs
+    o = _matvec_t(p.rotation, (origin - p.center)[None])[0]
+    d = _matvec_t(p.rotation, dirs)
+    if p.kind == "sphere":
+        r = p.size[0]
+        a = d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1] + d[:, 2] * d[:, 2]
+        b = d[:, 0] * o[0] + d[:, 1] * o[1] + d[:, 2] * o[2]
+        c = o[0] * o[0] + o[1] * o[1] + o[2] * o[2] - r * r
+        disc = b * b - a * c
+        root = np.sqrt(np.maximum(disc, 0.0))
+        t0, t1 = (-b - root) / a, (-b + root) / a
+        t = np.where(t0 > EPS, t0, np.where(t1 > EPS, t1, np.inf))
+        t = np.where(disc >= 0, t, inf)
+        local = o[None] + np.where(np.isfinite(t), t, 0.0)[:, None] * d
+        normal = local / r
+        if c < 0:  # camera inside the sphere
+            normal = -normal
+        return t, normal, local
+    # box / room: slab method
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv = 1.0 / d
+        t1 = (-p.size[None] - o[None]) * inv
+        t2 = (p.size[None] - o[None]) * inv
+    near, far = np.minimum(t1, t2), np.maximum(t1, t2)
+    near = np.where(np.isnan(near), -np.inf, near)
+    far = np.where(np.isnan(far), np.inf, far)
+    t_near, t_far = near.max(1), far.min(1)
+    hit = t_far >= np.maximum(t_near, EPS)
+    if p.kind == "room":
+        t = np.where(hit & (t_far > EPS), t_far, inf)
+        axis = far.argmin(1)
+    else:
+        t = np.where(hit & (t_near > EPS), t_near, inf)
+        axis = near.argmax(1)
+    sign = np.sign(d[np.arange(n), axis])
+    normal = np.zeros((n, 3))
+    normal[np.arange(n), axis] = -sign  # against the ray: outward for boxes, inward for rooms
+    local = o[None] + np.where(np.isfinite(t), t, 0.0)[:, None] * d
+    return t, normal, local
+
+
+def cast(scene: Scene, origin: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Nearest hit of every ray: (t, primitive index or -1, world normal), t = inf for no hit."""
+    n = dirs.shape[0]
+    best = np.full(n, np.inf)
+    index = np.full(n, -1, dtype=np.int64)
+    normal = np.zeros((n, 3))
+    local = np.zeros((n, 3))
+    for i, p in enumerate(scene.primitives):
+        t, nrm, loc = _intersect(p, origin, dirs)
+        closer = t < best
+        best = np.where(closer, t, best)
+        index = np.where(closer, i, index)
+        normal = np.where(closer[:, None], _matvec(p.rotation, nrm), normal)
+        local = np.where(closer[:, None], loc, local)
+    return best, index, normal, local
+
+
+def shade(scene: Scene, dirs: np.ndarray, index: np.ndarray, normal: np.ndarray,
+          local: np.ndarray) -> np.ndarray:
+    """Lambertian colour of each hit (N, 3) in [0, 1]; rays that hit nothing see the sky."""
+    bank = texture_bank()
+    colour = np.zeros((dirs.shape[0], 3))
+    norm = np.sqrt(dirs[:, 0] * dirs[:, 0] + dirs[:, 1] * dirs[:, 1] + dirs[:, 2] * dirs[:, 2])
+    up = np.clip(dirs[:, 2] / norm, 0.0, 1.0)[:, None]
+    colour[:] = np.array([0.78, 0.85, 0.95]) * (1 - up) + np.array([0.35, 0.55, 0.9]) * up
+    lit = np.clip(normal[:, 0] * scene.light[0] + normal[:, 1] * scene.light[1]
+                  + normal[:, 2] * scene.light[2], 0.0, 1.0)
+    intensity = scene.ambient + (1 - scene.ambient) * lit
+    for i, p in enumerate(scene.primitives):
+        m = index == i
+        if not m.any():
+            continue
+        loc, nrm = local[m], normal[m]
+        # planar projection along the dominant axis of the local normal (exact, no trig)
+        ln = np.abs(_matvec_t(p.rotation, nrm))
+        axis = ln.argmax(1)
+        u = np.where(axis == 0, loc[:, 1], loc[:, 0])
+        v = np.where(axis == 2, loc[:, 1], loc[:, 2])
+        albedo = sample_texture(bank[p.texture], u / p.texture_scale, v / p.texture_scale) * p.tint
+        colour[m] = albedo * intensity[m, None]
+    return colour
+
+
+# ----------------------------------------------------------------------------- cameras
+
+
+@dataclasses.dataclass(frozen=True)
+class Camera:
+    rotation: np.ndarray  # world -> camera
+    center: np.ndarray
+
+    @property
+    def translation(self) -> np.ndarray:
+        return -self.rotation @ self.center
+
+
+def look_at(center: np.ndarray, target: np.ndarray, roll: float = 0.0) -> Camera:
+    forward = _unit(target - center)
+    right = np.cross(forward, np.array([0.0, 0.0, 1.0]))
+    if np.linalg.norm(right) < 1e-6:
+        right = np.array([1.0, 0.0, 0.0])
+    right = _unit(right)
+    down = np.cross(forward, right)
+    rotation = np.stack([right, down, forward])
+    if roll:
+        rotation = _rot_axis(np.array([0.0, 0.0, 1.0]), roll) @ rotation
+    return Camera(rotation, center)
+
+
+def relative_motion(cam1: Camera, cam2: Camera) -> np.ndarray:
+    """(6,) [r, t] with X2 = R X1 + t (camera coordinates)."""
+    import torch
+
+    r12 = cam2.rotation @ cam1.rotation.T
+    t12 = cam2.translation - r12 @ cam1.translation
+    r = geo.matrix_to_angle_axis(torch.from_numpy(r12)[None])[0].numpy()
+    return np.concatenate([r, t12])
+
+
+def _gamma(rng: np.random.Generator, mean: float, std: float) -> float:
+    shape = (mean / std) ** 2
+    return float(rng.gamma(shape, mean / shape))
+
+
+def sample_cameras(rng: np.random.Generator, scene: Scene, preset: Preset) -> tuple[Camera, Camera]:
+    if preset.indoor:
+        room = scene.room
+        c1 = np.array([rng.uniform(-0.6, 0.6) * room[0], rng.uniform(-0.6, 0.6) * room[1],
+                       rng.uniform(1.1, 1.8)])
+        heading = rng.uniform(0, 2 * math.pi)
+        pitch = rng.uniform(-0.45, 0.05)
+        dist = rng.uniform(*preset.distance)
+        target = c1 + dist * np.array([math.cos(heading) * math.cos(pitch),
+                                       math.sin(heading) * math.cos(pitch), math.sin(pitch)])
+    else:
+        target = np.array([rng.normal() * 1.0, rng.normal() * 1.0, rng.uniform(0.2, 1.0)])
+        dist = rng.uniform(*preset.distance)
+        azimuth, elevation = rng.uniform(0, 2 * math.pi), rng.uniform(0.08, 0.5)
+        c1 = target + dist * np.array([math.cos(azimuth) * math.cos(elevation),
+                                       math.sin(azimuth) * math.cos(elevation), math.sin(elevation)])
+    cam1 = look_at(c1, target, roll=math.radians(rng.normal() * preset.roll_std))
+    # Camera 2 centre: rotate C1 about the target by the triangulation angle beta, about a random
+    # axis perpendicular to the viewing ray (biased towards sideways motion), then move it along
+    # its ray to the target (which keeps the angle at the target).
+    beta = math.radians(min(_gamma(rng, preset.tri_mean, preset.tri_std), 85.0))
+    ray = _unit(c1 - target)
+    side = _unit(np.cross(ray, np.array([0.0, 0.0, 1.0])) + 1e-9)
+    up = np.cross(side, ray)
+    phi = rng.normal() * 0.5
+    axis = math.cos(phi) * up + math.sin(phi) * side
+    c2 = target + _rot_axis(axis, beta) @ (c1 - target) * rng.uniform(0.85, 1.15)
+    if preset.indoor:
+        c2 = np.clip(c2, -scene.room * 0.95 + np.array([0, 0, scene.room[2]]),
+                     scene.room * 0.95 + np.array([0, 0, scene.room[2]]))
+    # Camera 2 direction: between parallel to camera 1 and converging on the target, plus noise.
+    f1 = cam1.rotation[2]
+    converge = _unit(target - c2)
+    direction = _unit(preset.convergence * converge + (1 - preset.convergence) * f1)
+    noise = rng.normal(size=3) * math.radians(preset.look_noise)
+    direction = _rot_axis(noise, float(np.linalg.norm(noise))) @ direction if np.linalg.norm(noise) > 0 else direction
+    cam2 = look_at(c2, c2 + direction, roll=math.radians(rng.normal() * preset.roll_std))
+    return cam1, cam2
+
+
+# ----------------------------------------------------------------------------- rendering
+
+
+INTRINSICS = np.array(geo.DEMON_INTRINSICS)
+
+
+def _pixel_rays(camera: Camera, size: tuple[int, int], offsets: list[tuple[float, float]]):
+    height, width = size
+    fx, fy, cx, cy = INTRINSICS
+    out = []
+    for ox, oy in offsets:
+        u = (np.arange(width) + ox) / width
+        v = (np.arange(height) + oy) / height
+        xs = np.broadcast_to(((u - cx) / fx)[None], (height, width)).reshape(-1)
+        ys = np.broadcast_to(((v - cy) / fy)[:, None], (height, width)).reshape(-1)
+        d_cam = np.stack([xs, ys, np.ones_like(xs)], 1)
+        out.append(_matvec_t(camera.rotation, d_cam))  # camera -> world: R^T d
+    return out
+
+
+def render_view(scene: Scene, camera: Camera, size: tuple[int, int], supersample: int = 2):
+    """Image (H, W, 3) in [0, 1], camera-z depth (H, W) (inf where nothing is hit), world points."""
+    height, width = size
+    (centre,) = _pixel_rays(camera, size, [(0.5, 0.5)])
+    t, index, normal, local = cast(scene, camera.center, centre)
+    # Ray directions have camera-z component 1, so the ray parameter is the camera-z depth.
+    depth = t.reshape(height, width)
+    if supersample <= 1:
+        colour = shade(scene, centre, index, normal, local)
+    else:
+        offsets = [((i + 0.5) / supersample, (j + 0.5) / supersample)
+                   for j in range(supersample) for i in range(supersample)]
+        colour = np.zeros((height * width, 3))
+        for dirs in _pixel_rays(camera, size, offsets):
+            colour += shade(scene, dirs, *cast(scene, camera.center, dirs)[1:])
+        colour /= len(offsets)
+    points = camera.center[None] + np.where(np.isfinite(t), t, 0.0)[:, None] * centre
+    return colour.reshape(height, width, 3), depth, points
+
+
+def visibility(scene: Scene, points: np.ndarray, valid: np.ndarray, camera: Camera,
+               size: tuple[int, int]) -> np.ndarray:
+    """Exact visibility of world points from camera 2: inside image 2 and not occluded."""
+    fx, fy, cx, cy = INTRINSICS
+    p = _matvec(camera.rotation, points - camera.center[None])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u = fx * p[:, 0] / p[:, 2] + cx
+        v = fy * p[:, 1] / p[:, 2] + cy
+    inside = valid & (p[:, 2] > 0) & (u > 0) & (u < 1) & (v > 0) & (v < 1)
+    out = np.zeros(points.shape[0], dtype=bool)
+    if inside.any():
+        dirs = points[inside] - camera.center[None]  # the point sits at ray parameter 1
+        t = cast(scene, camera.center, dirs)[0]
+        out[inside] = t >= 1 - 1e-6
+    return out
+
+
+def render_pair(preset: Preset | str, seed: int, size: tuple[int, int] = (96, 128),
+                supersample: int = 2, max_tries: int = 50) -> Sample:
+    """The synthetic sample of ``seed``: a scene and a camera pair that pass the pair filters.
+
+    Returns a :mod:`demon_lab.data.sample` ``Sample`` (DeMoN's intrinsics, scene units ~ metres,
+    translation not normalised) with ``meta`` holding the rejection count.
+    """
+    preset = PRESETS[preset] if isinstance(preset, str) else preset
+    rng = np.random.default_rng(seed)
+    height, width = size
+    for attempt in range(max_tries):
+        scene = random_scene(rng, preset)
+        for _ in range(4):
+            cam1, cam2 = sample_cameras(rng, scene, preset)
+            motion = relative_motion(cam1, cam2)
+            if np.linalg.norm(motion[3:]) < preset.min_baseline:
+                continue
+            # Cheap filter at 1/4 resolution before the full render.
+            small = (max(height // 4, 6), max(width // 4, 8))
+            _, d_small, pts_small = render_view(scene, cam1, small, supersample=1)
+            ok = np.isfinite(d_small).reshape(-1)
+            vis = visibility(scene, pts_small, ok, cam2, small)
+            if vis.mean() < preset.min_visible:
+                continue
+            image1, depth1, points1 = render_view(scene, cam1, size, supersample)
+            valid = np.isfinite(depth1).reshape(-1)
+            visible = visibility(scene, points1, valid, cam2, size)
+            if visible.mean() < preset.min_visible:
+                continue
+            image2, depth2, _ = render_view(scene, cam2, size, supersample)
+            quantise = lambda im: np.floor(np.clip(im, 0, 1) * 255 + 0.5).astype(np.uint8)  # noqa: E731
+            with np.errstate(divide="ignore"):
+                inv1 = np.where(np.isfinite(depth1), 1.0 / depth1, np.nan)
+                inv2 = np.where(np.isfinite(depth2), 1.0 / depth2, np.nan)
+            sample = make_sample(
+                f"{preset.name}/{seed}", quantise(image1), quantise(image2), INTRINSICS,
+                inv1.astype(np.float32), motion, inv_depth2=inv2.astype(np.float32),
+                visible=visible.reshape(height, width),
+            )
+            sample["meta"] = {"rejected": attempt}
+            return sample
+    raise RuntimeError(f"{preset.name}: no camera pair passed the filters in {max_tries} scenes "
+                       f"(seed {seed})")
