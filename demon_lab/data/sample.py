@@ -139,6 +139,7 @@ def geometric_visibility(sample: Sample) -> torch.Tensor:
         return visible
     coords, inv2 = geo.reproject(d1, m, k1, k2)
     height, width = d2.shape
+    coords = torch.nan_to_num(coords, nan=0.0)  # invalid pixels are not visible anyway
     x = (coords[0, 0] * width).floor().clamp(0, width - 1).long()
     y = (coords[0, 1] * height).floor().clamp(0, height - 1).long()
     target = d2[y, x]
@@ -278,7 +279,7 @@ def rotate_180(sample: Sample) -> Sample:
     """Both images turned by 180 degrees: both cameras rotate by pi about their z axes.
 
     X' = Rz X with Rz = diag(-1, -1, 1): R' = Rz R Rz, i.e. r' = (-rx, -ry, rz); t' = (-tx, -ty, tz);
-    cx -> 1 - cx, cy -> 1 - cy; maps flipped on both axes; flow and normals x, y negated.
+    cx -> 1 - cx, cy -> 1 - cy; maps flipped on both axes; flow x, y negated.
     """
     sign = torch.tensor([-1.0, -1.0, 1.0])
     return _flip_sample(sample, dims=(-2, -1), sign=sign, principal=(2, 3))
@@ -288,7 +289,7 @@ def mirror(sample: Sample) -> Sample:
     """Horizontal mirror: X' = M X with M = diag(-1, 1, 1) in both cameras.
 
     R' = M R M, i.e. r' = (rx, -ry, -rz) (a reflection flips the rotation sense); t' = (-tx, ty, tz);
-    cx -> 1 - cx; maps flipped left-right; flow x and normal x negated.
+    cx -> 1 - cx; maps flipped left-right; flow x negated.
     """
     sign = torch.tensor([-1.0, 1.0, 1.0])
     return _flip_sample(sample, dims=(-1,), sign=sign, principal=(2,))
@@ -300,7 +301,6 @@ def _flip_sample(sample: Sample, dims: tuple[int, ...], sign: torch.Tensor,
     for key in MAP_KEYS:
         out[key] = sample[key].flip(dims)
     out["flow"] = out["flow"] * sign[:2, None, None]
-    out["normals"] = out["normals"] * sign[:, None, None]
     det = float(sign.prod())  # -1 for a reflection
     r, t = sample["motion"][:3], sample["motion"][3:]
     out["motion"] = torch.cat([det * sign * r, sign * t])
@@ -309,6 +309,9 @@ def _flip_sample(sample: Sample, dims: tuple[int, ...], sign: torch.Tensor,
         for i in principal:
             k[i] = 1 - k[i]
         out[key] = k
+    # Like DeMoN, GT normals come from the augmented depth: its pixel stencil (right/down and
+    # left/up neighbours) is not mirror-symmetric at creases, so flipping the old map would differ.
+    out["normals"] = geo.normals_from_depth(out["inv_depth"][None], out["intrinsics"][None])[0]
     return out
 
 

@@ -25,7 +25,7 @@ import math
 import numpy as np
 
 from demon_lab import geometry as geo
-from demon_lab.data.sample import Sample, make_sample
+from demon_lab.data.sample import make_sample
 from demon_lab.data.textures import sample_texture, texture_bank
 
 EPS = 1e-9
@@ -391,11 +391,12 @@ def visibility(scene: Scene, points: np.ndarray, valid: np.ndarray, camera: Came
 
 
 def render_pair(preset: Preset | str, seed: int, size: tuple[int, int] = (96, 128),
-                supersample: int = 2, max_tries: int = 50) -> Sample:
+                supersample: int = 2, max_tries: int = 50, return_scene: bool = False):
     """The synthetic sample of ``seed``: a scene and a camera pair that pass the pair filters.
 
     Returns a :mod:`demon_lab.data.sample` ``Sample`` (DeMoN's intrinsics, scene units ~ metres,
-    translation not normalised) with ``meta`` holding the rejection count.
+    translation not normalised) with ``meta`` holding the rejection count; with
+    ``return_scene=True``, ``(sample, scene, camera1, camera2)``.
     """
     preset = PRESETS[preset] if isinstance(preset, str) else preset
     rng = np.random.default_rng(seed)
@@ -430,6 +431,6 @@ def render_pair(preset: Preset | str, seed: int, size: tuple[int, int] = (96, 12
                 visible=visible.reshape(height, width),
             )
             sample["meta"] = {"rejected": attempt}
-            return sample
+            return (sample, scene, cam1, cam2) if return_scene else sample
     raise RuntimeError(f"{preset.name}: no camera pair passed the filters in {max_tries} scenes "
                        f"(seed {seed})")

@@ -1,0 +1,50 @@
+"""The one place where configuration becomes objects.
+
+``instantiate`` is Hydra's, restricted to classes and functions of demon_lab, torch and
+Lightning: a config can name only those as ``_target_``, so a config file never runs
+arbitrary code.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+ALLOWED_TARGETS = ("demon_lab.", "torch.", "lightning.")
+
+
+class ConfigError(ValueError):
+    """A bad configuration value: the message names the key and what is allowed (one line)."""
+
+
+def _check_targets(node: Any, path: str = "") -> None:
+    from omegaconf import DictConfig, ListConfig
+
+    if isinstance(node, DictConfig):
+        target = node.get("_target_") if "_target_" in node else None
+        if target is not None and not str(target).startswith(ALLOWED_TARGETS):
+            raise ConfigError(f"{path or '<root>'}._target_: {target!r} is not allowed "
+                              f"(only {', '.join(p + '*' for p in ALLOWED_TARGETS)})")
+        for key in node:
+            _check_targets(node._get_node(key), f"{path}.{key}" if path else str(key))
+    elif isinstance(node, ListConfig):
+        for i, item in enumerate(node._iter_ex(resolve=False)):
+            _check_targets(item, f"{path}[{i}]")
+
+
+def instantiate(cfg: Any, **kwargs: Any) -> Any:
+    """``hydra.utils.instantiate`` after checking every ``_target_`` in the tree."""
+    from hydra.errors import InstantiationException
+    from hydra.utils import instantiate as hydra_instantiate
+    from omegaconf import DictConfig, ListConfig, OmegaConf
+
+    if not isinstance(cfg, DictConfig | ListConfig):
+        cfg = OmegaConf.create(cfg)
+    _check_targets(cfg)
+    try:
+        return hydra_instantiate(cfg, **kwargs)
+    except InstantiationException as e:
+        # Hydra wraps the constructor's error; demon_lab's own errors are already one clear line.
+        cause = e.__cause__
+        if isinstance(cause, ValueError):
+            raise cause from None
+        raise ConfigError(str(e).splitlines()[0]) from None

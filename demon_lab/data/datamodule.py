@@ -1,0 +1,66 @@
+"""LightningDataModule over any mix of sources, with train/val/test splits.
+
+``train`` is a list of ``{weight, dataset}`` entries: each step draws a source with probability
+proportional to its weight and a sample of it (DeMoN divides a source's weight by its number of
+files; here a weight is per source). ``val`` and ``test`` are lists of datasets evaluated one by
+one (each keeps its name, so metrics are reported per dataset).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+import lightning as L
+import numpy as np
+import torch
+from torch.utils.data import DataLoader
+
+from demon_lab.data.datasets import MixtureDataset, MixtureSampler, PairDataset
+
+
+def _seed_worker(worker_id: int) -> None:
+    # demon_lab draws from explicit generators, but user code may use numpy's global one.
+    np.random.seed(torch.initial_seed() % 2**32)  # noqa: NPY002
+
+
+class DemonDataModule(L.LightningDataModule):
+    def __init__(
+        self,
+        train: Sequence[Mapping[str, Any]] = (),
+        val: Sequence[PairDataset] = (),
+        test: Sequence[PairDataset] = (),
+        batch_size: int = 8,
+        num_workers: int = 0,
+        samples_per_epoch: int = 1000,
+        seed: int = 0,
+    ):
+        super().__init__()
+        self.train_sources = [(float(e["weight"]), e["dataset"]) for e in train]
+        self.val_sets, self.test_sets = list(val), list(test)
+        self.batch_size, self.num_workers = int(batch_size), int(num_workers)
+        self.samples_per_epoch, self.seed = int(samples_per_epoch), int(seed)
+        self._sampler: MixtureSampler | None = None
+
+    def _loader(self, dataset, **kwargs) -> DataLoader:
+        return DataLoader(dataset, batch_size=self.batch_size, num_workers=self.num_workers,
+                          worker_init_fn=_seed_worker, persistent_workers=self.num_workers > 0,
+                          generator=torch.Generator().manual_seed(self.seed), **kwargs)
+
+    def train_dataloader(self) -> DataLoader:
+        if not self.train_sources:
+            raise ValueError("data.train: no training source configured")
+        weights, datasets = zip(*self.train_sources)
+        self._sampler = MixtureSampler([len(d) for d in datasets], weights,
+                                       self.samples_per_epoch, self.seed)
+        return self._loader(MixtureDataset(datasets), sampler=self._sampler, drop_last=True)
+
+    def val_dataloader(self) -> list[DataLoader]:
+        return [self._loader(d, shuffle=False) for d in self.val_sets]
+
+    def test_dataloader(self) -> list[DataLoader]:
+        return [self._loader(d, shuffle=False) for d in self.test_sets]
+
+    @property
+    def test_names(self) -> list[str]:
+        return [d.name for d in self.test_sets]

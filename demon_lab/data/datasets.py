@@ -1,0 +1,275 @@
+"""Datasets: one class per source, all yielding prepared ``Sample``s of one size.
+
+Every dataset loads a sample at its native resolution (``load``) and ``__getitem__`` prepares it
+the same way for all sources: resample to ``size`` (optionally to fixed intrinsics), DeMoN's
+translation normalisation, and DeMoN's augmentation for training. Indexing with an ``int`` gives
+the un-augmented sample; indexing with ``(index, draw_seed)`` (what :class:`MixtureSampler`
+yields) augments with a generator seeded by ``(seed, draw_seed)``, so the augmentation of a draw
+does not depend on the number of workers.
+
+Each class also carries the supplementary's Table 1 metadata (``perfect_gt``, ``photorealistic``,
+``outdoor``: 'yes', 'no' or '(yes)').
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import os
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from demon_lab.data import sample as smp
+from demon_lab.data import synthetic
+from demon_lab.data.readers import demon_h5, middlebury, pair_folder, tum
+
+SPLIT_SEEDS = {"train": 0, "val": 10_000_000, "test": 20_000_000}
+"""Synthetic samples of split S use seeds SPLIT_SEEDS[S] + index: disjoint ranges."""
+GENERATOR_VERSION = 1  # bump when rendering changes: it is part of the cache key
+DEFAULT_CACHE = Path(os.environ.get("DEMON_LAB_CACHE", Path.home() / ".cache" / "demon_lab"))
+
+
+class PairDataset(torch.utils.data.Dataset):
+    perfect_gt = "no"
+    photorealistic = "yes"
+    outdoor = "no"
+
+    def __init__(
+        self,
+        size: Sequence[int] | None = None,
+        fixed_intrinsics: bool = False,
+        normalize_translation: bool = True,
+        augment: bool = False,
+        seed: int = 0,
+    ):
+        """
+        Args:
+            size: (H, W) of the prepared samples; None keeps the native resolution.
+            fixed_intrinsics: resample both views to DeMoN's intrinsics (a crop + scale);
+                otherwise the source's own intrinsics are kept (DeMoN's reader does this).
+            normalize_translation: |t| = 1 with depths scaled alike (DeMoN's training and
+                prediction convention); ``baseline`` keeps the original |t|.
+            augment: DeMoN's augmentation (180-degree rotation, mirror, p = 0.5 each) on draws.
+            seed: seed of the augmentation draws.
+        """
+        self.size = None if size is None else (int(size[0]), int(size[1]))
+        self.fixed_intrinsics = fixed_intrinsics
+        self.normalize_translation = normalize_translation
+        self.augment = augment
+        self.seed = seed
+
+    name = "pairs"
+
+    def __len__(self) -> int:
+        raise NotImplementedError
+
+    def load(self, index: int) -> smp.Sample:
+        """The raw sample at its native resolution."""
+        raise NotImplementedError
+
+    def __getitem__(self, key: int | tuple[int, int]) -> smp.Sample:
+        index, draw = (key, None) if isinstance(key, int | np.integer) else key
+        if not 0 <= index < len(self):
+            raise IndexError(f"{self.name}: index {index} out of range 0..{len(self) - 1}")
+        sample = self.load(int(index))
+        sample.pop("meta", None)
+        target = smp.geo.DEMON_INTRINSICS if self.fixed_intrinsics else None
+        if self.size is not None and (tuple(sample["image1"].shape[1:]) != self.size or target):
+            sample = smp.resample(sample, self.size, target)
+        if self.normalize_translation:
+            sample = smp.normalize_translation(sample)
+        if self.augment and draw is not None:
+            sample = smp.augment(sample, np.random.default_rng([self.seed, int(draw)]))
+        return sample
+
+
+class SyntheticDataset(PairDataset):
+    """Procedural scenes of a preset (:mod:`demon_lab.data.synthetic`), rendered at ``size``.
+
+    Samples are cached on disk (``cache_dir``, default ``$DEMON_LAB_CACHE`` or
+    ``~/.cache/demon_lab``) under a key hashing the preset, size, supersampling and generator
+    version, and reused; ``cache_dir=False`` renders every time.
+    """
+
+    perfect_gt = "yes"
+    photorealistic = "no"
+
+    def __init__(self, preset: str, split: str = "train", length: int = 1000,
+                 size: Sequence[int] = (96, 128), supersample: int = 2,
+                 cache_dir: str | Path | bool | None = None, **kwargs: Any):
+        if preset not in synthetic.PRESETS:
+            raise smp.DataError(f"preset {preset!r}: expected one of {sorted(synthetic.PRESETS)}")
+        if split not in SPLIT_SEEDS:
+            raise smp.DataError(f"split {split!r}: expected one of {sorted(SPLIT_SEEDS)}")
+        if length < 1:
+            raise smp.DataError(f"length must be >= 1, got {length}")
+        super().__init__(size=size, **kwargs)
+        self.preset = synthetic.PRESETS[preset]
+        self.name = preset
+        self.outdoor = {"synthetic_scenes11": "(yes)", "synthetic_mvs": "yes"}.get(preset, "no")
+        self.split, self.length, self.supersample = split, int(length), int(supersample)
+        self.render_size = self.size  # rendered directly at the target size and intrinsics
+        self.fixed_intrinsics = False
+        key = json.dumps({"preset": dataclasses.asdict(self.preset), "size": self.render_size,
+                          "supersample": self.supersample, "version": GENERATOR_VERSION},
+                         sort_keys=True)
+        self.cache_key = hashlib.sha1(key.encode()).hexdigest()[:16]
+        if cache_dir is False:
+            self.cache = None
+        else:
+            self.cache = Path(cache_dir or DEFAULT_CACHE) / "synthetic" / f"{preset}-{self.cache_key}"
+
+    def __len__(self) -> int:
+        return self.length
+
+    def seed_of(self, index: int) -> int:
+        return SPLIT_SEEDS[self.split] + index
+
+    def load(self, index: int) -> smp.Sample:
+        seed = self.seed_of(index)
+        path = None if self.cache is None else self.cache / f"{seed}.pt"
+        if path is not None and path.is_file():
+            try:
+                return torch.load(path, weights_only=True)
+            except Exception:  # a truncated cache entry: render again and overwrite it
+                pass
+        sample = synthetic.render_pair(self.preset, seed, self.render_size, self.supersample)
+        sample.pop("meta", None)
+        if path is not None:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            tmp = path.with_suffix(f".tmp{os.getpid()}")
+            torch.save(sample, tmp)
+            os.replace(tmp, path)  # atomic: concurrent workers never read half a file
+        return sample
+
+
+class DemonH5Dataset(PairDataset):
+    """A DeMoN HDF5 file (:mod:`demon_lab.data.readers.demon_h5`)."""
+
+    def __init__(self, path: str | Path, test_phase: bool = True, outdoor: str = "no",
+                 perfect_gt: str = "no", photorealistic: str = "yes", **kwargs: Any):
+        super().__init__(**kwargs)
+        self.path = Path(path)
+        self.name = self.path.stem
+        self.pairs = demon_h5.read_demon_h5_pairs(self.path, test_phase)
+        if not self.pairs:
+            raise smp.DataError(f"{self.path}: no usable image pair")
+        self.outdoor, self.perfect_gt, self.photorealistic = outdoor, perfect_gt, photorealistic
+        self._file = None
+        self._pid = None
+
+    def __len__(self) -> int:
+        return len(self.pairs)
+
+    def load(self, index: int) -> smp.Sample:
+        if self._file is None or self._pid != os.getpid():  # h5py handles do not survive fork
+            self._file = demon_h5._open(self.path)
+            self._pid = os.getpid()
+        return demon_h5.load_demon_h5_pair(self._file, self.path, *self.pairs[index])
+
+    def __getstate__(self):
+        state = dict(self.__dict__)
+        state["_file"] = None
+        return state
+
+
+class PairFolderDataset(PairDataset):
+    """DPSNet/DeepSFM pair folders: one folder or a directory of them."""
+
+    def __init__(self, path: str | Path, pair: Sequence[int] = (0, 1), **kwargs: Any):
+        super().__init__(**kwargs)
+        self.folders = pair_folder.find_pair_folders(path)
+        self.pair = (int(pair[0]), int(pair[1]))
+        self.name = Path(path).name
+
+    def __len__(self) -> int:
+        return len(self.folders)
+
+    def load(self, index: int) -> smp.Sample:
+        return pair_folder.read_pair_folder(self.folders[index], self.pair)
+
+
+class MiddleburyDataset(PairDataset):
+    """The Middlebury "motorcycle" pair that scikit-image ships (one sample)."""
+
+    name = "middlebury"
+
+    def __len__(self) -> int:
+        return 1
+
+    def load(self, index: int) -> smp.Sample:
+        return middlebury.middlebury_motorcycle()
+
+
+class TumDataset(PairDataset):
+    """A TUM RGB-D sequence, pairs sampled by baseline (:mod:`demon_lab.data.readers.tum`)."""
+
+    def __init__(self, root: str | Path, min_baseline: float = 0.05, max_baseline: float = 0.5,
+                 stride: int = 10, intrinsics: Sequence[float] | None = None, **kwargs: Any):
+        super().__init__(**kwargs)
+        self.root = Path(root)
+        self.name = self.root.name
+        self.pairs = tum.read_tum_pairs(self.root, min_baseline, max_baseline, stride)
+        if not self.pairs:
+            raise smp.DataError(f"{self.root}: no frame pair with a baseline in "
+                                f"[{min_baseline}, {max_baseline}] m")
+        self.intrinsics = intrinsics
+
+    def __len__(self) -> int:
+        return len(self.pairs)
+
+    def load(self, index: int) -> smp.Sample:
+        return tum.load_tum_pair(self.root, self.pairs[index], self.intrinsics)
+
+
+# ----------------------------------------------------------------------------- mixtures
+
+
+class MixtureDataset(torch.utils.data.Dataset):
+    """Several datasets behind one index space of ``(dataset, index, draw_seed)`` keys."""
+
+    def __init__(self, datasets: Sequence[PairDataset]):
+        self.datasets = list(datasets)
+
+    def __len__(self) -> int:
+        return sum(len(d) for d in self.datasets)
+
+    def __getitem__(self, key: tuple[int, int, int]) -> smp.Sample:
+        which, index, draw = key
+        return self.datasets[which][(index, draw)]
+
+
+class MixtureSampler(torch.utils.data.Sampler):
+    """Draws ``num_samples`` keys per epoch: a source with probability proportional to its weight,
+    then a uniform sample of it, and a draw seed for the augmentation. Deterministic in
+    ``(seed, epoch)``; the epoch advances each time the sampler is iterated (once per epoch in a
+    DataLoader), or is set with :meth:`set_epoch` (for resuming)."""
+
+    def __init__(self, lengths: Sequence[int], weights: Sequence[float], num_samples: int, seed: int = 0):
+        if len(lengths) != len(weights) or not lengths:
+            raise ValueError("weights: expected one weight per source")
+        w = np.asarray(weights, dtype=np.float64)
+        if (w < 0).any() or w.sum() <= 0:
+            raise ValueError(f"weights: expected non-negative weights with a positive sum, got {list(w)}")
+        self.lengths, self.p = list(lengths), w / w.sum()
+        self.num_samples, self.seed, self.epoch = int(num_samples), int(seed), 0
+
+    def set_epoch(self, epoch: int) -> None:
+        self.epoch = int(epoch)
+
+    def __len__(self) -> int:
+        return self.num_samples
+
+    def __iter__(self):
+        epoch = self.epoch
+        self.epoch += 1
+        rng = np.random.default_rng([self.seed, epoch])
+        sources = rng.choice(len(self.lengths), size=self.num_samples, p=self.p)
+        for n, s in enumerate(sources):
+            index = int(rng.integers(self.lengths[s]))
+            yield (int(s), index, epoch * self.num_samples + n)

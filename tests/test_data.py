@@ -1,0 +1,505 @@
+"""demon_lab.data: the Sample type, synthetic scenes, readers, augmentation, the DataModule."""
+
+from __future__ import annotations
+
+import math
+import subprocess
+import sys
+
+import cv2
+import numpy as np
+import pytest
+import torch
+from conftest import SUN3D_PAIR
+
+from demon_lab import geometry as geo
+from demon_lab.data import sample as smp
+from demon_lab.data import synthetic
+from demon_lab.data.datasets import (
+    SPLIT_SEEDS,
+    DemonH5Dataset,
+    MiddleburyDataset,
+    MixtureSampler,
+    PairFolderDataset,
+    SyntheticDataset,
+    TumDataset,
+)
+from demon_lab.data.readers import (
+    middlebury_motorcycle,
+    read_demon_h5_pairs,
+    read_pair_folder,
+    write_demon_h5,
+    write_tum_sequence,
+)
+
+SIZE = (48, 64)
+
+
+@pytest.fixture(scope="module")
+def rendered():
+    """A synthetic sample with its scene and cameras (for exact checks against the renderer)."""
+    return synthetic.render_pair("synthetic_sun3d", 7, SIZE, supersample=1, return_scene=True)
+
+
+def _flow_of(sample: dict) -> torch.Tensor:
+    return geo.flow_from_depth_motion(sample["inv_depth"][None], sample["motion"][None],
+                                      sample["intrinsics"][None], sample["intrinsics2"][None])[0]
+
+
+def _photometric_error(sample: dict) -> tuple[float, float]:
+    """Mean |image1 - warp(image2, GT flow)| on visible pixels, and without the warp."""
+    flow = torch.nan_to_num(sample["flow"], nan=0.0)[None]
+    warped = geo.warp_image(sample["image2"][None], flow)[0]
+    seen = sample["visible"][0] & (warped.abs().sum(0) > 0)
+    err = (warped - sample["image1"]).abs().mean(0)[seen].mean().item()
+    base = (sample["image2"] - sample["image1"]).abs().mean(0)[seen].mean().item()
+    return err, base
+
+
+# ----------------------------------------------------------------------------- Sample
+
+
+def test_sample_keys_shapes_and_dtypes(rendered):
+    sample = rendered[0]
+    H, W = SIZE
+    expected = {"image1": (3, H, W), "image2": (3, H, W), "intrinsics": (4,), "intrinsics2": (4,),
+                "inv_depth": (1, H, W), "inv_depth2": (1, H, W), "motion": (6,), "flow": (2, H, W),
+                "normals": (3, H, W), "valid": (1, H, W), "visible": (1, H, W)}
+    for key, shape in expected.items():
+        assert tuple(sample[key].shape) == shape, key
+    assert sample["image1"].dtype == torch.float32 and sample["valid"].dtype == torch.bool
+    assert -0.5 <= sample["image1"].min() and sample["image1"].max() <= 0.5
+    assert sample["id"] == "synthetic_sun3d/7"
+    assert sample["baseline"] == pytest.approx(float(sample["motion"][3:].norm()))
+    assert not (sample["visible"] & ~sample["valid"]).any()
+    torch.testing.assert_close(sample["flow"], _flow_of(sample), equal_nan=True)
+
+
+@pytest.mark.parametrize("kwargs, message", [
+    (dict(image2=np.zeros((3, 8, 9), np.float32)), "image2 has shape"),
+    (dict(inv_depth=np.ones((7, 8))), r"inv_depth must be \(8, 8\)"),
+    (dict(motion=[0, 0, 0, math.nan, 0, 1]), "motion has non-finite values"),
+    (dict(motion=[0, 0, 1]), "motion must have 6 values"),
+    (dict(intrinsics=[0, 1, 0.5, 0.5]), "focal lengths must be positive"),
+    (dict(inv_depth=np.full((8, 8), np.nan)), "no valid pixel"),
+    (dict(inv_depth=-np.ones((8, 8))), "no valid pixel"),
+    (dict(image1=np.zeros((8, 8, 4), np.uint8)), r"image1 must be \(H, W, 3\) RGB"),
+])
+def test_make_sample_bad_input_is_one_clear_line(kwargs, message):
+    args = dict(id="pair/0", image1=np.zeros((3, 8, 8), np.float32), image2=np.zeros((3, 8, 8), np.float32),
+                intrinsics=[1, 1, 0.5, 0.5], inv_depth=np.ones((8, 8)), motion=[0, 0, 0, 1, 0, 0])
+    args.update(kwargs)
+    with pytest.raises(smp.DataError, match=message) as info:
+        smp.make_sample(**args)
+    assert "pair/0" in str(info.value) and "\n" not in str(info.value)
+
+
+def test_normalize_translation_scales_depth_and_keeps_flow(rendered):
+    sample = rendered[0]
+    out = smp.normalize_translation(sample)
+    norm = float(sample["motion"][3:].norm())
+    assert float(out["motion"][3:].norm()) == pytest.approx(1.0)
+    torch.testing.assert_close(out["inv_depth"], sample["inv_depth"] * norm, equal_nan=True)
+    torch.testing.assert_close(_flow_of(out), sample["flow"], equal_nan=True, atol=1e-6, rtol=1e-5)
+    assert out["baseline"] == sample["baseline"]
+    zero = dict(sample, motion=torch.zeros(6))
+    with pytest.raises(smp.DataError, match="zero baseline"):
+        smp.normalize_translation(zero)
+
+
+def test_resample_to_new_intrinsics_is_the_zoomed_crop():
+    rng = np.random.default_rng(0)
+    H, W = 40, 64
+    image = cv2.resize(rng.random((10, 16, 3)).astype(np.float32), (W, H), interpolation=cv2.INTER_CUBIC) - 0.5
+    k = np.array([0.9, 1.2, 0.5, 0.5])
+    sample = smp.make_sample("zoom", torch.from_numpy(image).permute(2, 0, 1), torch.from_numpy(image).permute(2, 0, 1),
+                             k, np.full((H, W), 0.5), [0, 0, 0, 0.1, 0, 0])
+    # Twice the focal length at the same principal point = the central half of the image, scaled x2.
+    out = smp.resample(sample, (H, W), intrinsics=[1.8, 2.4, 0.5, 0.5])
+    expected = cv2.resize(image[H // 4:3 * H // 4, W // 4:3 * W // 4], (W, H), interpolation=cv2.INTER_LINEAR)
+    got = out["image1"].permute(1, 2, 0).numpy()
+    assert np.abs(got - expected)[2:-2, 2:-2].max() < 1e-5
+    torch.testing.assert_close(out["intrinsics"], torch.tensor([1.8, 2.4, 0.5, 0.5]))
+    # A plain resize keeps the normalised intrinsics and averages areas.
+    half = smp.resample(sample, (H // 2, W // 2))
+    torch.testing.assert_close(half["intrinsics"], sample["intrinsics"])
+    np.testing.assert_allclose(half["image1"][:, 0, 0].numpy(), image[:2, :2].mean((0, 1)), atol=1e-6)
+
+
+def test_resample_real_pair_to_demon_intrinsics_keeps_ground_truth_consistent():
+    sample = middlebury_motorcycle()
+    out = smp.resample(sample, (192, 256), intrinsics=geo.DEMON_INTRINSICS)
+    torch.testing.assert_close(out["intrinsics"], torch.tensor(geo.DEMON_INTRINSICS))
+    torch.testing.assert_close(out["intrinsics2"], torch.tensor(geo.DEMON_INTRINSICS))
+    err, base = _photometric_error(out)
+    assert err < 0.06 and err < base / 3
+
+
+# ----------------------------------------------------------------------------- augmentation
+
+
+@pytest.mark.parametrize("transform", ["rotate_180", "mirror", "both"])
+@pytest.mark.parametrize("source", ["synthetic", "middlebury"])
+def test_augmentation_is_consistent(transform, source, rendered):
+    sample = rendered[0] if source == "synthetic" else smp.resample(middlebury_motorcycle(), (96, 128))
+    ops = {"rotate_180": [smp.rotate_180], "mirror": [smp.mirror], "both": [smp.rotate_180, smp.mirror]}
+    out = sample
+    for op in ops[transform]:
+        out = op(out)
+    # flow from the augmented depth and motion equals the augmented flow
+    torch.testing.assert_close(_flow_of(out), out["flow"], equal_nan=True, atol=2e-6, rtol=1e-4)
+    # normals (recomputed from the augmented depth) equal the transformed old ones on smooth parts
+    sign = {"rotate_180": [-1, -1, 1], "mirror": [-1, 1, 1], "both": [1, -1, 1]}[transform]
+    flipped = sample["normals"].flip((-2, -1) if transform == "rotate_180" else (-1,) if transform == "mirror"
+                                     else (-2,)) * torch.tensor(sign, dtype=torch.float32)[:, None, None]
+    both = torch.isfinite(flipped).all(0) & torch.isfinite(out["normals"]).all(0)
+    cos = (flipped * out["normals"]).sum(0)[both]
+    assert cos.median() > 0.99  # the stencil differs only at creases and on noisy real depth
+    assert not torch.equal(out["image1"], sample["image1"])
+    err, base = _photometric_error(out)
+    # the images moved with the geometry (the warp's border rule is not flip-symmetric: ~1 %)
+    assert err == pytest.approx(_photometric_error(sample)[0], rel=0.05) and err < base / 2
+    # rotation angle and baseline do not change
+    assert float(out["motion"][:3].norm()) == pytest.approx(float(sample["motion"][:3].norm()), rel=1e-6)
+    assert float(out["motion"][3:].norm()) == pytest.approx(float(sample["motion"][3:].norm()), rel=1e-6)
+
+
+def test_augment_draws_are_deterministic(rendered):
+    a = smp.augment(rendered[0], np.random.default_rng([0, 5]))
+    b = smp.augment(rendered[0], np.random.default_rng([0, 5]))
+    assert torch.equal(a["image1"], b["image1"]) and torch.equal(a["motion"], b["motion"])
+
+
+# ----------------------------------------------------------------------------- synthetic
+
+
+def test_synthetic_ground_truth_is_exact(rendered):
+    sample, scene, _cam1, cam2 = rendered
+    # Where view-1 points land in view 2 (demon_lab.geometry), camera 2's exact ray cast through
+    # that sub-pixel position hits the same point at the same depth.
+    coords, inv2 = geo.reproject(sample["inv_depth"][None].double(), sample["motion"][None].double(),
+                                 sample["intrinsics"][None].double())
+    vis = sample["visible"][0].numpy()
+    u2, v2 = coords[0, 0].numpy()[vis], coords[0, 1].numpy()[vis]
+    fx, fy, cx, cy = synthetic.INTRINSICS
+    d_cam = np.stack([(u2 - cx) / fx, (v2 - cy) / fy, np.ones_like(u2)], 1)
+    t = synthetic.cast(scene, cam2.center, d_cam @ cam2.rotation)[0]
+    rel = np.abs(1 / t - inv2[0, 0].numpy()[vis]) * t
+    assert vis.mean() > 0.5
+    assert rel.max() < 1e-5  # float32 storage of depth and motion
+    # the view-2 depth map itself is the ray cast at pixel centres
+    (centre,) = synthetic._pixel_rays(cam2, SIZE, [(0.5, 0.5)])
+    t2 = synthetic.cast(scene, cam2.center, centre)[0].reshape(SIZE)
+    np.testing.assert_allclose(sample["inv_depth2"][0].numpy(), 1 / t2, rtol=1e-6)
+    # photometric consistency: image 2 warped by the GT flow looks like image 1
+    err, base = _photometric_error(sample)
+    assert err < base / 2
+
+
+def test_occluded_pixels_are_not_visible(rendered):
+    sample, scene, _cam1, cam2 = rendered
+    inside = geo.visibility_mask(sample["inv_depth"][None], sample["motion"][None], sample["intrinsics"][None])[0]
+    # visible implies projecting inside; some inside pixels are occluded by nearer geometry
+    assert not (sample["visible"] & ~inside).any()
+    occluded = inside & ~sample["visible"]
+    coords, inv2 = geo.reproject(sample["inv_depth"][None].double(), sample["motion"][None].double(),
+                                 sample["intrinsics"][None].double())
+    if occluded.any():
+        u2 = coords[0, 0][occluded[0]].numpy()
+        v2 = coords[0, 1][occluded[0]].numpy()
+        fx, fy, cx, cy = synthetic.INTRINSICS
+        d_cam = np.stack([(u2 - cx) / fx, (v2 - cy) / fy, np.ones_like(u2)], 1)
+        t = synthetic.cast(scene, cam2.center, d_cam @ cam2.rotation)[0]
+        assert (1 / t > inv2[0, 0][occluded[0]].numpy() * (1 + 1e-6)).all()  # something nearer
+
+
+def test_synthetic_samples_are_deterministic_and_splits_disjoint():
+    a = synthetic.render_pair("synthetic_scenes11", 11, (24, 32))
+    b = synthetic.render_pair("synthetic_scenes11", 11, (24, 32))
+    c = synthetic.render_pair("synthetic_scenes11", 12, (24, 32))
+    for key in ("image1", "image2", "inv_depth", "inv_depth2", "motion", "visible"):
+        assert a[key].numpy().tobytes() == b[key].numpy().tobytes(), key
+    assert not torch.equal(a["image1"], c["image1"])
+    train = SyntheticDataset("synthetic_scenes11", "train", length=10, size=(24, 32), cache_dir=False)
+    test = SyntheticDataset("synthetic_scenes11", "test", length=10, size=(24, 32), cache_dir=False)
+    assert {train.seed_of(i) for i in range(10)}.isdisjoint({test.seed_of(i) for i in range(10)})
+    assert test.seed_of(0) == SPLIT_SEEDS["test"]
+
+
+def test_synthetic_bytes_are_the_same_in_a_fresh_process():
+    code = ("import hashlib; from demon_lab.data import synthetic as s;"
+            "x = s.render_pair('synthetic_mvs', 3, (24, 32));"
+            "keys = ('image1', 'image2', 'inv_depth', 'motion');"
+            "print(hashlib.sha256(b''.join(x[k].numpy().tobytes() for k in keys)).hexdigest())")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.strip()
+    x = synthetic.render_pair("synthetic_mvs", 3, (24, 32))
+    import hashlib
+
+    here = hashlib.sha256(b"".join(x[k].numpy().tobytes() for k in ("image1", "image2", "inv_depth", "motion")))
+    assert out == here.hexdigest()
+
+
+def test_synthetic_cache_returns_identical_samples(tmp_path):
+    ds = SyntheticDataset("synthetic_sun3d", "val", length=2, size=(24, 32), cache_dir=tmp_path)
+    first = ds[1]
+    files = list(tmp_path.rglob("*.pt"))
+    assert len(files) == 1 and ds.cache_key in str(files[0])
+    again = ds[1]
+    for key in ("image1", "inv_depth", "motion", "flow"):
+        assert torch.equal(first[key], again[key]) or torch.allclose(first[key], again[key], equal_nan=True)
+    files[0].write_bytes(b"truncated")  # a damaged entry is rendered again, not a crash
+    assert torch.equal(ds[1]["image1"], first["image1"])
+
+
+TABLE1 = {"synthetic_scenes11": (3.3, 5.3), "synthetic_sun3d": (10.6, 5.2), "synthetic_mvs": (34.3, 28.9)}
+
+
+@pytest.mark.parametrize("preset", sorted(TABLE1))
+def test_presets_hit_table1_means_within_15_percent(preset):
+    from demon_lab.data_stats import dataset_statistics
+
+    ds = SyntheticDataset(preset, "train", length=500, size=(24, 32), supersample=1, cache_dir=False)
+    stats = dataset_statistics([ds], 500)
+    rot, tri = TABLE1[preset]
+    assert stats["n_pairs"] == 500
+    assert stats["rot_mean_deg"] == pytest.approx(rot, rel=0.15)
+    assert stats["tri_mean_deg"] == pytest.approx(tri, rel=0.15)
+    assert stats["visible_fraction"] >= 0.5 * stats["valid_fraction"]
+
+
+# ----------------------------------------------------------------------------- readers
+
+
+def test_sun3d_pair_folder_reader(sun3d_pair):
+    sample = read_pair_folder(SUN3D_PAIR)
+    torch.testing.assert_close(sample["intrinsics"], torch.tensor(geo.DEMON_INTRINSICS), rtol=1e-6, atol=1e-7)
+    assert math.degrees(float(sample["motion"][:3].norm())) == pytest.approx(1.853, abs=1e-3)
+    t = sample["motion"][3:].double()
+    assert float(t.norm()) == pytest.approx(0.0749, abs=1e-4)
+    np.testing.assert_allclose((t / t.norm()).numpy(), [-0.8187, -0.0454, -0.5724], atol=1e-4)
+    depths = torch.cat([1 / d[torch.isfinite(d)] for d in (sample["inv_depth"], sample["inv_depth2"])])
+    assert float(depths.min()) == pytest.approx(0.80, abs=0.01) and float(depths.max()) == pytest.approx(4.0, abs=0.01)
+    assert float(sample["valid"].float().mean()) == pytest.approx(0.666, abs=0.001)
+    assert float(torch.isfinite(sample["inv_depth2"]).float().mean()) == pytest.approx(0.738, abs=0.001)
+    # ground-truth consistency: view-1 depth moved by the motion meets view-2 depth
+    coords, inv2 = geo.reproject(sample["inv_depth"][None], sample["motion"][None], sample["intrinsics"][None])
+    x = (coords[0, 0] * 640).floor().long().clamp(0, 639)
+    y = (coords[0, 1] * 480).floor().long().clamp(0, 479)
+    inside = geo.visibility_mask(sample["inv_depth"][None], sample["motion"][None], sample["intrinsics"][None])[0, 0]
+    target = sample["inv_depth2"][0][y, x]
+    keep = inside & torch.isfinite(target)
+    rel = ((1 / inv2[0, 0] - 1 / target).abs() * target)[keep]
+    assert float(rel.median()) < 0.01
+
+
+def test_pair_folder_directory_and_bad_files(tmp_path):
+    import shutil
+
+    root = tmp_path / "pairs"
+    shutil.copytree(SUN3D_PAIR, root / "scene_a")
+    ds = PairFolderDataset(root, size=(96, 128))
+    assert len(ds) == 1 and ds[0]["image1"].shape == (3, 96, 128)
+    (root / "scene_a" / "0001.jpg").write_bytes(b"not a jpeg")
+    with pytest.raises(smp.DataError, match=r"0001\.jpg: not a readable image"):
+        ds.load(0)
+    (root / "scene_a" / "poses.txt").write_text("1 2 3\n")
+    with pytest.raises(smp.DataError, match=r"poses\.txt: expected a line of 12 numbers"):
+        ds.load(0)
+    with pytest.raises(smp.DataError, match="no pair folder"):
+        PairFolderDataset(tmp_path / "pairs" / "scene_a" / "..", size=None).folders and PairFolderDataset(tmp_path)
+
+
+def test_middlebury_reader():
+    sample = middlebury_motorcycle()
+    H, W = 500, 741
+    assert sample["image1"].shape == (3, H, W)
+    torch.testing.assert_close(sample["motion"], torch.tensor([0, 0, 0, -0.193001, 0, 0]))
+    assert float(sample["intrinsics"][0]) == pytest.approx(994.978 / W)
+    assert float(sample["intrinsics2"][2] - sample["intrinsics"][2]) == pytest.approx(31.086 / W, rel=1e-5)
+    depth = 1 / sample["inv_depth"][sample["valid"]]
+    assert 2.0 < float(depth.min()) < 2.2 and 4.9 < float(depth.max()) < 5.1
+    # the GT flow is minus the disparity: left[y, x] <-> right[y, x - d]
+    from skimage import data
+
+    disparity = data.stereo_motorcycle()[2]
+    ok = np.isfinite(disparity)
+    np.testing.assert_allclose(sample["flow"][0].numpy()[ok] * W, -disparity[ok], atol=2e-3)
+    assert np.abs(sample["flow"][1].numpy()[ok]).max() < 1e-6
+    err, base = _photometric_error(sample)
+    assert err < 0.05 and err < base / 4
+
+
+def _view_of(scene, camera, size):
+    image, depth, _ = synthetic.render_view(scene, camera, size, supersample=1)
+    rgb = np.floor(np.clip(image, 0, 1) * 255 + 0.5).astype(np.uint8)
+    return rgb, np.where(np.isfinite(depth), depth, 0.0)
+
+
+def _pixel_K(size):
+    H, W = size
+    fx, fy, cx, cy = synthetic.INTRINSICS
+    return np.array([[fx * W, 0, cx * W], [0, fy * H, cy * H], [0, 0, 1.0]])
+
+
+def test_demon_h5_round_trip(tmp_path, rendered):
+    sample, scene, cam1, cam2 = rendered
+    views = [_view_of(scene, c, SIZE) for c in (cam1, cam2)]
+    K = _pixel_K(SIZE)
+    path = tmp_path / "tiny_test.h5"
+    scenes = [{"name": "scene0", "viewpoint_pairs": [0, 1, 1, 0],
+               "views": [{"image": im, "depth": d, "K": K, "R": c.rotation, "t": c.translation}
+                         for (im, d), c in zip(views, (cam1, cam2))]},
+              {"name": "scene1",
+               "views": [{"image": im, "depth": d, "K": K, "R": c.rotation, "t": c.translation,
+                          "depth_metric": "ray_length"} for (im, d), c in zip(views, (cam1, cam2))]}]
+    # scene1 stores ray lengths: convert camera-z to ray length to write it
+    fx, fy, cx, cy = synthetic.INTRINSICS
+    xs = ((np.arange(SIZE[1]) + 0.5) / SIZE[1] - cx) / fx
+    ys = ((np.arange(SIZE[0]) + 0.5) / SIZE[0] - cy) / fy
+    for v in scenes[1]["views"]:
+        v["depth"] = v["depth"] * np.sqrt(xs[None] ** 2 + ys[:, None] ** 2 + 1)
+    write_demon_h5(path, scenes)
+    assert read_demon_h5_pairs(path, test_phase=True) == [("scene0", 0, 1), ("scene1", 0, 1)]
+    assert read_demon_h5_pairs(path, test_phase=False) == [("scene0", 0, 1), ("scene0", 1, 0),
+                                                           ("scene1", 0, 1), ("scene1", 1, 0)]
+    ds = DemonH5Dataset(path, normalize_translation=False)
+    for index in range(2):
+        got = ds.load(index)
+        np.testing.assert_allclose(got["motion"].numpy(), sample["motion"].numpy(), atol=1e-6)
+        torch.testing.assert_close(got["intrinsics"], sample["intrinsics"])
+        valid = sample["valid"] & got["valid"]
+        assert valid.float().mean() > 0.95 * sample["valid"].float().mean()
+        rel = ((got["inv_depth"] - sample["inv_depth"]).abs() / sample["inv_depth"])[valid]
+        assert rel.max() < 1.5e-3  # float16 storage (and the ray-length conversion)
+        assert (got["image1"] - sample["image1"]).abs().mean() < 0.03  # WebP at quality 90
+    assert ds[0]["id"].endswith("scene0/frames/t0/v0,v1")
+
+
+def test_demon_h5_bad_files(tmp_path):
+    bad = tmp_path / "corrupt.h5"
+    bad.write_bytes(b"\x89HDF\r\n" + bytes(range(256)) * 4)
+    with pytest.raises(smp.DataError, match=r"corrupt\.h5: not a readable HDF5 file"):
+        DemonH5Dataset(bad)
+    with pytest.raises(smp.DataError, match=r"missing\.h5: file not found"):
+        DemonH5Dataset(tmp_path / "missing.h5")
+    import h5py
+
+    with h5py.File(tmp_path / "broken.h5", "w") as f:
+        f.create_dataset("s/frames/t0/v0/image", data=np.zeros(10, np.int8))
+        f.create_dataset("s/frames/t0/v1/image", data=np.zeros(10, np.int8))
+    ds = DemonH5Dataset(tmp_path / "broken.h5")
+    with pytest.raises(smp.DataError, match=r"lacks the dataset\(s\) depth, camera"):
+        ds.load(0)
+
+
+def test_tum_sequence_round_trip(tmp_path, rendered):
+    _, scene, cam1, cam2 = rendered
+    # a short trajectory from camera 1 to camera 2 and beyond
+    cams = [cam1]
+    for step in (0.5, 1.0, 1.5, 2.0):
+        center = cam1.center + step * (cam2.center - cam1.center)
+        cams.append(synthetic.Camera(cam2.rotation if step >= 1 else cam1.rotation, center))
+    frames = []
+    for c in cams:
+        image, depth = _view_of(scene, c, SIZE)
+        frames.append({"image": image, "depth": depth, "R": c.rotation, "t": c.translation})
+    root = tmp_path / "rgbd_dataset_synthetic"
+    write_tum_sequence(root, frames)
+    baseline = float(np.linalg.norm(cam2.center - cam1.center))
+    K = _pixel_K(SIZE)
+    ds = TumDataset(root, min_baseline=0.9 * baseline, max_baseline=1.1 * baseline, stride=1,
+                    intrinsics=(K[0, 0], K[1, 1], K[0, 2] - 0.5, K[1, 2] - 0.5), normalize_translation=False)
+    assert len(ds) >= 2
+    got = ds.load(0)
+    expected = synthetic.relative_motion(cams[0], cams[2])
+    np.testing.assert_allclose(got["motion"].numpy(), expected, atol=1e-5)
+    torch.testing.assert_close(got["intrinsics"], torch.tensor(synthetic.INTRINSICS, dtype=torch.float32))
+    depth = 1 / got["inv_depth"][got["valid"]]
+    truth = torch.from_numpy(frames[0]["depth"]).float()[got["valid"][0]]
+    assert (depth - truth).abs().max() < 1e-4 + 1 / 5000  # 16-bit PNG at 1/5000 m
+    (root / "groundtruth.txt").write_text("# nothing\n")
+    with pytest.raises(smp.DataError, match=r"groundtruth\.txt: no entries"):
+        TumDataset(root)
+
+
+# ----------------------------------------------------------------------------- mixing, configs
+
+
+def test_mixture_sampler_follows_weights_and_is_deterministic():
+    sampler = MixtureSampler([10, 1000], [3.0, 1.0], num_samples=4000, seed=1)
+    first = list(sampler)
+    second = list(sampler)  # the next epoch draws anew
+    assert first != second
+    replay = MixtureSampler([10, 1000], [3.0, 1.0], num_samples=4000, seed=1)
+    assert list(replay) == first
+    share = np.mean([s == 0 for s, _, _ in first])
+    assert share == pytest.approx(0.75, abs=0.03)
+    assert all(0 <= i < (10 if s == 0 else 1000) for s, i, _ in first)
+    assert len({d for _, _, d in first + second}) == 8000  # every draw has its own seed
+
+
+def test_datamodule_batches_a_mix(tmp_path):
+    from demon_lab.data.datamodule import DemonDataModule
+
+    common = dict(size=(32, 64), cache_dir=tmp_path)
+    train = [{"weight": 1.0, "dataset": SyntheticDataset("synthetic_sun3d", "train", length=4, augment=True, **common)},
+             {"weight": 1.0, "dataset": MiddleburyDataset(size=(32, 64), augment=True)}]
+    dm = DemonDataModule(train=train, test=[SyntheticDataset("synthetic_mvs", "test", length=2, **common)],
+                         batch_size=4, samples_per_epoch=8, seed=3)
+    batch = next(iter(dm.train_dataloader()))
+    assert batch["image1"].shape == (4, 3, 32, 64) and batch["motion"].shape == (4, 6)
+    assert torch.allclose(batch["motion"][:, 3:].norm(dim=1), torch.ones(4))  # normalised
+    assert len(batch["id"]) == 4
+    again = next(iter(DemonDataModule(train=train, batch_size=4, samples_per_epoch=8, seed=3).train_dataloader()))
+    assert torch.equal(batch["image1"], again["image1"])
+    (test_loader,) = dm.test_dataloader()
+    assert dm.test_names == ["synthetic_mvs"] and next(iter(test_loader))["image1"].shape[0] == 2
+
+
+def test_every_data_config_composes(tmp_path):
+    from pathlib import Path
+
+    from hydra import compose, initialize_config_dir
+
+    conf = Path(__file__).resolve().parents[1] / "conf"
+    names = sorted(p.stem for p in (conf / "data").glob("*.yaml"))
+    assert {"synthetic_scenes11", "synthetic_sun3d", "synthetic_mvs", "demon_h5", "pair_folder",
+            "middlebury", "tum", "default"} <= set(names)
+    with initialize_config_dir(str(conf), version_base="1.3"):
+        for name in names:
+            extra = {"demon_h5": ["data.path=x"], "tum": ["data.root=x"]}.get(name, [])
+            cfg = compose("data_stats", overrides=[f"data={name}", *extra])
+            assert cfg.data.name == name
+            assert cfg.data.train and "test" in cfg.data
+            for entry in cfg.data.train:
+                assert str(entry.dataset._target_).startswith("demon_lab.data.datasets.")
+
+
+def _run_stats(*args):
+    return subprocess.run([sys.executable, "-m", "demon_lab.data_stats", *args],
+                          capture_output=True, text=True)
+
+
+def test_data_stats_command_writes_json(tmp_path):
+    import json
+
+    out = tmp_path / "stats.json"
+    result = _run_stats("data=synthetic_mvs", "n=6", "data.size=[24,32]", "data.cache_dir=false", f"out={out}")
+    assert result.returncode == 0, result.stderr
+    stats = json.loads(out.read_text())
+    for key in ("n_pairs", "rot_mean_deg", "rot_std_deg", "tri_mean_deg", "tri_std_deg",
+                "valid_fraction", "visible_fraction", "median_depth"):
+        assert key in stats
+    assert stats["n_pairs"] == 6 and stats["outdoor"] == "yes" and stats["perfect_gt"] == "yes"
+    assert "Rot. avg" in result.stdout and "synthetic_mvs" in result.stdout
+
+
+@pytest.mark.parametrize("args, message", [
+    (["data=pair_folder", "data.path=/does/not/exist"], "/does/not/exist: no such file or directory"),
+    (["data=demon_h5"], "Missing mandatory value"),
+    (["n=0"], "n: expected a positive integer"),
+])
+def test_data_stats_bad_input_is_one_line(args, message):
+    result = _run_stats(*args)
+    assert result.returncode == 2
+    assert message in result.stderr and len(result.stderr.strip().splitlines()) == 1
