@@ -5,6 +5,7 @@ Absolute times vary between machines, so every section also reports ratios measu
 run (a geometry op against its OpenCV counterpart). Sections:
 
 * ``geometry``: the geometry layers at 256x192, batch 8, float32, on the CPU.
+* ``data``: synthetic pairs per second, rendered (one core, worker processes) and from the cache.
 """
 
 from __future__ import annotations
@@ -142,7 +143,67 @@ def bench_geometry(repeats: int) -> str:
     return "\n".join(lines)
 
 
-SECTIONS: dict[str, Callable[[int], str]] = {"geometry": bench_geometry}
+def _render_job(args: tuple[str, int, tuple[int, int]]) -> None:
+    from demon_lab.data import synthetic
+
+    preset, seed, size = args
+    synthetic.render_pair(preset, seed, size)
+
+
+def bench_data(repeats: int) -> str:
+    """Synthetic pairs per second: rendering on one core and with worker processes, and cached."""
+    import multiprocessing as mp
+    import tempfile
+
+    from demon_lab.data import synthetic
+    from demon_lab.data.datasets import SyntheticDataset
+    from demon_lab.data.textures import texture_bank
+
+    texture_bank()  # built once per process; not part of a pair's cost
+    presets = sorted(synthetic.PRESETS)
+    workers = max(2, min(4, os.cpu_count() or 2))
+    rows = []
+    for size in ((96, 128), (192, 256)):
+        n = max(3, repeats) * len(presets) if size[0] < 192 else max(1, repeats // 2) * len(presets)
+        jobs = [(presets[i % len(presets)], 1000 + i, size) for i in range(n)]
+        start = time.perf_counter()
+        for job in jobs:
+            _render_job(job)
+        one = n / (time.perf_counter() - start)
+        with mp.get_context("spawn").Pool(workers, initializer=texture_bank) as pool:
+            pool.map(_render_job, jobs[:workers])  # warm the workers up
+            start = time.perf_counter()
+            pool.map(_render_job, jobs)
+            many = n / (time.perf_counter() - start)
+        with tempfile.TemporaryDirectory() as cache:
+            ds = SyntheticDataset(presets[0], "train", length=8, size=size, cache_dir=cache,
+                                  normalize_translation=False)
+            for i in range(8):
+                ds[i]
+            start = time.perf_counter()
+            for _ in range(max(1, repeats // 4)):
+                for i in range(8):
+                    ds[i]
+            cached = 8 * max(1, repeats // 4) / (time.perf_counter() - start)
+        rows.append((f"{size[1]}x{size[0]}", n, f"{one:.1f}", f"{many:.1f}", f"{cached:.0f}"))
+    lines = [
+        "## data",
+        "",
+        f"`python -m demon_lab.bench data` — {dt.date.today().isoformat()}, {machine_line()}.",
+        "Synthetic pairs rendered per second (the three presets in turn, 2x2 supersampling, exact "
+        f"visibility), on one core and with {workers} worker processes, and pairs per second read "
+        "back from the disk cache (the training path once a scene has been rendered).",
+        "",
+        "| resolution | pairs timed | render, 1 core | render, "
+        f"{workers} workers | from cache, 1 core |",
+        "|---|---:|---:|---:|---:|",
+        *[f"| {a} | {b} | {c} | {d} | {e} |" for a, b, c, d, e in rows],
+        "",
+    ]
+    return "\n".join(lines)
+
+
+SECTIONS: dict[str, Callable[[int], str]] = {"geometry": bench_geometry, "data": bench_data}
 
 
 def write_section(path: Path, name: str, body: str) -> None:

@@ -158,71 +158,83 @@ def _matvec(m: np.ndarray, d: np.ndarray) -> np.ndarray:
     return np.stack([d[:, 0] * m[k, 0] + d[:, 1] * m[k, 1] + d[:, 2] * m[k, 2] for k in range(3)], 1)
 
 
-def _intersect(p: Primitive, origin: np.ndarray, dirs: np.ndarray):
-    """Nearest hit t > EPS along origin + t dirs: (t, local normal, local point); t = inf if none."""
-    n = dirs.shape[0]
-    inf = np.full(n, np.inf)
-    if p.kind == "plane":
-        with np.errstate(divide="ignore", invalid="ignore"):
-            t = -origin[2] / dirs[:, 2]
-        t = np.where(np.isfinite(t) & (t > EPS), t, inf)
-        normal = np.zeros((n, 3))
-        normal[:, 2] = 1.0 if origin[2] >= 0 else -1.0
-        return t, normal, origin[None] + t[:, None] * dirs
+def _local_rays(p: Primitive, origin: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, list[np.ndarray]]:
+    """Ray origin (3,) and direction columns [(N,)] * 3 in the primitive's frame."""
     o = _matvec_t(p.rotation, (origin - p.center)[None])[0]
-    d = _matvec_t(p.rotation, dirs)
-    if p.kind == "sphere":
-        r = p.size[0]
-        a = d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1] + d[:, 2] * d[:, 2]
-        b = d[:, 0] * o[0] + d[:, 1] * o[1] + d[:, 2] * o[2]
-        c = o[0] * o[0] + o[1] * o[1] + o[2] * o[2] - r * r
-        disc = b * b - a * c
-        root = np.sqrt(np.maximum(disc, 0.0))
-        t0, t1 = (-b - root) / a, (-b + root) / a
-        t = np.where(t0 > EPS, t0, np.where(t1 > EPS, t1, np.inf))
-        t = np.where(disc >= 0, t, inf)
-        local = o[None] + np.where(np.isfinite(t), t, 0.0)[:, None] * d
-        normal = local / r
-        if c < 0:  # camera inside the sphere
-            normal = -normal
-        return t, normal, local
-    # box / room: slab method
+    r = p.rotation
+    d = [dirs[:, 0] * r[0, k] + dirs[:, 1] * r[1, k] + dirs[:, 2] * r[2, k] for k in range(3)]
+    return o, d
+
+
+def _hit_distance(p: Primitive, origin: np.ndarray, dirs: np.ndarray) -> np.ndarray:
+    """Ray parameter of the nearest hit with t > EPS (inf if none), for every ray (N,)."""
     with np.errstate(divide="ignore", invalid="ignore"):
-        inv = 1.0 / d
-        t1 = (-p.size[None] - o[None]) * inv
-        t2 = (p.size[None] - o[None]) * inv
-    near, far = np.minimum(t1, t2), np.maximum(t1, t2)
-    near = np.where(np.isnan(near), -np.inf, near)
-    far = np.where(np.isnan(far), np.inf, far)
-    t_near, t_far = near.max(1), far.min(1)
-    hit = t_far >= np.maximum(t_near, EPS)
-    if p.kind == "room":
-        t = np.where(hit & (t_far > EPS), t_far, inf)
-        axis = far.argmin(1)
-    else:
-        t = np.where(hit & (t_near > EPS), t_near, inf)
-        axis = near.argmax(1)
-    sign = np.sign(d[np.arange(n), axis])
-    normal = np.zeros((n, 3))
-    normal[np.arange(n), axis] = -sign  # against the ray: outward for boxes, inward for rooms
-    local = o[None] + np.where(np.isfinite(t), t, 0.0)[:, None] * d
-    return t, normal, local
+        if p.kind == "plane":
+            t = -origin[2] / dirs[:, 2]
+            return np.where(t > EPS, t, np.inf)  # NaN and -inf compare False
+        o, d = _local_rays(p, origin, dirs)
+        if p.kind == "sphere":
+            r = p.size[0]
+            a = d[0] * d[0] + d[1] * d[1] + d[2] * d[2]
+            b = d[0] * o[0] + d[1] * o[1] + d[2] * o[2]
+            c = o[0] * o[0] + o[1] * o[1] + o[2] * o[2] - r * r
+            disc = b * b - a * c
+            root = np.sqrt(np.maximum(disc, 0.0))
+            t0, t1 = (-b - root) / a, (-b + root) / a
+            t = np.where(t0 > EPS, t0, np.where(t1 > EPS, t1, np.inf))
+            return np.where(disc >= 0, t, np.inf)
+        # box / room: slab method; fmin/fmax skip the NaN of 0 * inf on a slab boundary
+        t_near = np.full(dirs.shape[0], -np.inf)
+        t_far = np.full(dirs.shape[0], np.inf)
+        for k in range(3):
+            inv = 1.0 / d[k]
+            t1 = (-p.size[k] - o[k]) * inv
+            t2 = (p.size[k] - o[k]) * inv
+            t_near = np.fmax(t_near, np.fmin(t1, t2))
+            t_far = np.fmin(t_far, np.fmax(t1, t2))
+        hit = t_far >= np.maximum(t_near, EPS)
+        t = t_far if p.kind == "room" else t_near  # a room is seen from inside
+        return np.where(hit & (t > EPS), t, np.inf)
 
 
-def cast(scene: Scene, origin: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Nearest hit of every ray: (t, primitive index or -1, world normal), t = inf for no hit."""
+def _surface(p: Primitive, origin: np.ndarray, dirs: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """World normal (facing the ray's side) and local hit point of rays that hit ``p`` at ``t``."""
+    if p.kind == "plane":
+        normal = np.zeros_like(dirs)
+        normal[:, 2] = 1.0 if origin[2] >= 0 else -1.0
+        return normal, origin[None] + t[:, None] * dirs
+    o, d = _local_rays(p, origin, dirs)
+    local = np.stack([o[k] + t * d[k] for k in range(3)], 1)
+    if p.kind == "sphere":
+        inside = o[0] * o[0] + o[1] * o[1] + o[2] * o[2] < p.size[0] * p.size[0]
+        normal = local / (-p.size[0] if inside else p.size[0])
+    else:  # the face is the axis where the point lies on the box surface
+        ratio = np.abs(local) / p.size[None]
+        axis = np.where((ratio[:, 0] >= ratio[:, 1]) & (ratio[:, 0] >= ratio[:, 2]), 0,
+                        np.where(ratio[:, 1] >= ratio[:, 2], 1, 2))
+        rows = np.arange(local.shape[0])
+        normal = np.zeros_like(local)
+        side = np.sign(local[rows, axis])
+        normal[rows, axis] = -side if p.kind == "room" else side  # rooms face inwards
+    return _matvec(p.rotation, normal), local
+
+
+def cast(scene: Scene, origin: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, ...]:
+    """Nearest hit of every ray from ``origin`` along ``dirs`` (N, 3): ray parameter t (inf for
+    no hit), primitive index (-1), world normal and the hit point in the primitive's frame."""
     n = dirs.shape[0]
     best = np.full(n, np.inf)
     index = np.full(n, -1, dtype=np.int64)
-    normal = np.zeros((n, 3))
-    local = np.zeros((n, 3))
     for i, p in enumerate(scene.primitives):
-        t, nrm, loc = _intersect(p, origin, dirs)
+        t = _hit_distance(p, origin, dirs)
         closer = t < best
         best = np.where(closer, t, best)
         index = np.where(closer, i, index)
-        normal = np.where(closer[:, None], _matvec(p.rotation, nrm), normal)
-        local = np.where(closer[:, None], loc, local)
+    normal = np.zeros((n, 3))
+    local = np.zeros((n, 3))
+    for i in np.unique(index[index >= 0]):
+        m = index == i
+        normal[m], local[m] = _surface(scene.primitives[i], origin, dirs[m], best[m])
     return best, index, normal, local
 
 
