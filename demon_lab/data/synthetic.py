@@ -13,8 +13,12 @@ the supplementary describes: at least 50 % of view-1 pixels visible in view 2 an
 baseline.
 
 Determinism: a sample is a pure function of (preset, seed, size). Per-pixel work uses only
-correctly rounded IEEE operations (+, -, *, /, sqrt, floor) in float64 numpy, no BLAS and no
-transcendental functions, so the same seed gives byte-identical samples on any machine.
+correctly rounded IEEE operations (+, -, *, /, sqrt, floor) in float64 numpy, with no BLAS and
+no transcendental functions; the scalar camera maths avoids BLAS too and draws from numpy's PCG64
+generator. The only platform-dependent pieces are a few scalar calls of the C library's
+sin/cos/exp/log (camera angles, numpy's gamma sampler), which can differ in the last bit between
+C-library builds. With the same numpy and C library the same seed gives byte-identical samples on
+any machine, in any process (tested across processes).
 """
 
 from __future__ import annotations
@@ -95,13 +99,34 @@ def _rot_z(angle: float) -> np.ndarray:
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
-def _rot_axis(axis: np.ndarray, angle: float) -> np.ndarray:
-    return geo.angle_axis_to_matrix(
-        __import__("torch").from_numpy(axis / np.linalg.norm(axis) * angle)[None])[0].numpy()
+# Scalar camera maths with explicit products: numpy's `@` and `linalg.norm` call BLAS, whose
+# kernels (FMA or not) may round differently on other processors.
+
+
+def _norm(v: np.ndarray) -> float:
+    return math.sqrt(float(v[0] * v[0] + v[1] * v[1] + v[2] * v[2]))
 
 
 def _unit(v: np.ndarray) -> np.ndarray:
-    return v / np.linalg.norm(v)
+    return v / _norm(v)
+
+
+def _mm(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """3x3 @ 3x3, or 3x3 @ (3,)."""
+    if b.ndim == 1:
+        return np.array([a[i, 0] * b[0] + a[i, 1] * b[1] + a[i, 2] * b[2] for i in range(3)])
+    return np.array([[a[i, 0] * b[0, j] + a[i, 1] * b[1, j] + a[i, 2] * b[2, j] for j in range(3)]
+                     for i in range(3)])
+
+
+def _rot_axis(axis: np.ndarray, angle: float) -> np.ndarray:
+    """Rotation by ``angle`` about ``axis`` (Rodrigues, explicit)."""
+    x, y, z = _unit(axis)
+    c, s = math.cos(angle), math.sin(angle)
+    C = 1 - c
+    return np.array([[c + x * x * C, x * y * C - z * s, x * z * C + y * s],
+                     [y * x * C + z * s, c + y * y * C, y * z * C - x * s],
+                     [z * x * C - y * s, z * y * C + x * s, c + z * z * C]])
 
 
 def random_scene(rng: np.random.Generator, preset: Preset) -> Scene:
@@ -136,7 +161,7 @@ def random_scene(rng: np.random.Generator, preset: Preset) -> Scene:
         rot = _rot_z(rng.uniform(0, 2 * math.pi))
         if floating or kind == "slab":
             axis = np.array([rng.normal(), rng.normal(), 0.0])
-            rot = _rot_axis(axis, rng.uniform(-0.6, 0.6)) @ rot
+            rot = _mm(_rot_axis(axis, rng.uniform(-0.6, 0.6)), rot)
         prims.append(Primitive("sphere" if kind == "sphere" else "box",
                                np.array([xy[0], xy[1], z]), rot, size, **material()))
     elevation = rng.uniform(0.4, 1.2)
@@ -274,19 +299,19 @@ class Camera:
 
     @property
     def translation(self) -> np.ndarray:
-        return -self.rotation @ self.center
+        return -_mm(self.rotation, self.center)
 
 
 def look_at(center: np.ndarray, target: np.ndarray, roll: float = 0.0) -> Camera:
     forward = _unit(target - center)
     right = np.cross(forward, np.array([0.0, 0.0, 1.0]))
-    if np.linalg.norm(right) < 1e-6:
+    if _norm(right) < 1e-6:
         right = np.array([1.0, 0.0, 0.0])
     right = _unit(right)
     down = np.cross(forward, right)
     rotation = np.stack([right, down, forward])
     if roll:
-        rotation = _rot_axis(np.array([0.0, 0.0, 1.0]), roll) @ rotation
+        rotation = _mm(_rot_axis(np.array([0.0, 0.0, 1.0]), roll), rotation)
     return Camera(rotation, center)
 
 
@@ -294,8 +319,8 @@ def relative_motion(cam1: Camera, cam2: Camera) -> np.ndarray:
     """(6,) [r, t] with X2 = R X1 + t (camera coordinates)."""
     import torch
 
-    r12 = cam2.rotation @ cam1.rotation.T
-    t12 = cam2.translation - r12 @ cam1.translation
+    r12 = _mm(cam2.rotation, cam1.rotation.T)
+    t12 = cam2.translation - _mm(r12, cam1.translation)
     r = geo.matrix_to_angle_axis(torch.from_numpy(r12)[None])[0].numpy()
     return np.concatenate([r, t12])
 
@@ -331,7 +356,7 @@ def sample_cameras(rng: np.random.Generator, scene: Scene, preset: Preset) -> tu
     up = np.cross(side, ray)
     phi = rng.normal() * 0.5
     axis = math.cos(phi) * up + math.sin(phi) * side
-    c2 = target + _rot_axis(axis, beta) @ (c1 - target) * rng.uniform(0.85, 1.15)
+    c2 = target + _mm(_rot_axis(axis, beta), c1 - target) * rng.uniform(0.85, 1.15)
     if preset.indoor:
         c2 = np.clip(c2, -scene.room * 0.95 + np.array([0, 0, scene.room[2]]),
                      scene.room * 0.95 + np.array([0, 0, scene.room[2]]))
@@ -340,7 +365,8 @@ def sample_cameras(rng: np.random.Generator, scene: Scene, preset: Preset) -> tu
     converge = _unit(target - c2)
     direction = _unit(preset.convergence * converge + (1 - preset.convergence) * f1)
     noise = rng.normal(size=3) * math.radians(preset.look_noise)
-    direction = _rot_axis(noise, float(np.linalg.norm(noise))) @ direction if np.linalg.norm(noise) > 0 else direction
+    if _norm(noise) > 0:
+        direction = _mm(_rot_axis(noise, _norm(noise)), direction)
     cam2 = look_at(c2, c2 + direction, roll=math.radians(rng.normal() * preset.roll_std))
     return cam1, cam2
 
@@ -418,7 +444,7 @@ def render_pair(preset: Preset | str, seed: int, size: tuple[int, int] = (96, 12
         for _ in range(4):
             cam1, cam2 = sample_cameras(rng, scene, preset)
             motion = relative_motion(cam1, cam2)
-            if np.linalg.norm(motion[3:]) < preset.min_baseline:
+            if _norm(motion[3:]) < preset.min_baseline:
                 continue
             # Cheap filter at 1/4 resolution before the full render.
             small = (max(height // 4, 6), max(width // 4, 8))
