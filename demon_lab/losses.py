@@ -1,0 +1,153 @@
+"""DeMoN's training losses (spec section 4): pure functions returning ``(loss, terms)``.
+
+All point-wise losses use :func:`pointwise_l2` — the mean over batch and pixels of
+``sqrt(sum_channels d^2 + eps)`` with ``d = replace_nonfinite(pred - gt)`` (invalid ground truth
+contributes the constant ``sqrt(eps)`` and still counts in the mean, as in DeMoN). For one channel
+it is a smoothed L1, for flow the end-point error, for normals the Euclidean distance.
+
+Weights come from a preset (``conf/loss/``); ``ramp`` multiplies the scale-invariant gradient
+(sig) terms and ``level5`` the level-5 flow terms (the stage computes both from its step).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+
+import torch
+
+from demon_lab import geometry as geo
+
+EPS = 1e-5
+WEIGHT_KEYS = ("flow", "flow_conf", "flow_sig", "flow_conf_sig", "depth", "depth_sig", "normals",
+               "rotation", "translation", "refine_depth", "refine_depth_sig", "refine_normals")
+Terms = dict[str, torch.Tensor]
+
+
+def pointwise_l2(pred: torch.Tensor, gt: torch.Tensor, eps: float = EPS) -> torch.Tensor:
+    """Mean over (batch, y, x) of sqrt(sum over channels of (pred - gt)^2 + eps); (B, C, H, W)."""
+    d = torch.nan_to_num(pred - gt.detach(), nan=0.0, posinf=0.0, neginf=0.0)
+    return torch.sqrt((d * d).sum(1) + eps).mean()
+
+
+def sig_loss(pred: torch.Tensor, gt: torch.Tensor, eps_pred: float = 1e-3, eps_gt: float = 1e-3) -> torch.Tensor:
+    """Point-wise loss between scale-invariant gradient images (spacings 1, 2, 4, 8, 16), one
+    Euclidean norm over the 10 gradient channels per pixel; channels of a map are separate items."""
+    sp, sg = geo.scale_invariant_gradients(pred, eps=eps_pred), geo.scale_invariant_gradients(gt, eps=eps_gt)
+    return pointwise_l2(sp.flatten(0, 1), sg.flatten(0, 1))
+
+
+def vector_loss(pred: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
+    """DeMoN's motion loss: mean over the batch of sum_xyz sqrt((pred - gt)^2 + eps) (B, 3)."""
+    d = pred - gt.detach()
+    return torch.sqrt(d * d + EPS).sum(1).mean()
+
+
+def confidence_target(flow_pred: torch.Tensor, flow_gt: torch.Tensor, scale: float = 10.0) -> torch.Tensor:
+    """GT of the confidence: exp(-scale |f_pred - f_gt|) per component, with the current
+    prediction (stop-gradient; DeMoN's conf_diff_scale = 10 on normalised flow)."""
+    return torch.exp(-scale * (flow_pred.detach() - flow_gt).abs())
+
+
+def _weighted(terms: Terms) -> torch.Tensor:
+    return sum(terms.values(), torch.zeros(()))
+
+
+def flow_loss(flowconf5: torch.Tensor, flowconf2: torch.Tensor, gt: Mapping[str, torch.Tensor],
+              weights: Mapping[str, float], ramp: float = 1.0, level5: float = 1.0) -> tuple[torch.Tensor, Terms]:
+    """Loss of a flow net: flow and confidence at levels 2 and 5, sig of flow and confidence.
+
+    Args:
+        flowconf5, flowconf2: (B, 4, h, w) predictions [flow (2), confidence (2)].
+        gt: ``flow2`` and ``flow5`` ground truth (NaN = unknown).
+        weights: a loss preset; ramp, level5: the stage's ramp factors.
+    """
+    f2, c2 = flowconf2[:, :2], flowconf2[:, 2:]
+    f5, c5 = flowconf5[:, :2], flowconf5[:, 2:]
+    conf2_gt = confidence_target(f2, gt["flow2"])
+    terms: Terms = {
+        "flow2": weights["flow"] * pointwise_l2(f2, gt["flow2"]),
+        "conf2": weights["flow_conf"] * pointwise_l2(c2, conf2_gt),
+        "flow2_sig": weights["flow_sig"] * ramp * sig_loss(f2, gt["flow2"]),
+        "conf2_sig": weights["flow_conf_sig"] * ramp * sig_loss(c2, conf2_gt),
+    }
+    if level5 > 0:
+        terms["flow5"] = weights["flow"] * level5 * pointwise_l2(f5, gt["flow5"])
+        terms["conf5"] = weights["flow_conf"] * level5 * pointwise_l2(c5, confidence_target(f5, gt["flow5"]))
+    return _weighted(terms), terms
+
+
+def depth_motion_loss(inv_depth: torch.Tensor, normals: torch.Tensor, motion: torch.Tensor,
+                      gt: Mapping[str, torch.Tensor], weights: Mapping[str, float],
+                      ramp: float = 1.0) -> tuple[torch.Tensor, Terms]:
+    """Loss of a depth-motion net: inverse depth, its sig, normals at level 2, rotation, translation.
+
+    ``gt``: ``inv_depth2``, ``normals2`` (level 2) and ``motion`` (B, 6). The predicted depth's sig
+    uses eps 0.01, the GT's 0.001 (as DeMoN).
+    """
+    terms: Terms = {
+        "depth2": weights["depth"] * pointwise_l2(inv_depth, gt["inv_depth2"]),
+        "depth2_sig": weights["depth_sig"] * ramp * sig_loss(inv_depth, gt["inv_depth2"], 1e-2, 1e-3),
+        "normal2": weights["normals"] * pointwise_l2(normals, gt["normals2"]),
+        "rotation": weights["rotation"] * vector_loss(motion[:, :3], gt["motion"][:, :3]),
+        "translation": weights["translation"] * vector_loss(motion[:, 3:], gt["motion"][:, 3:]),
+    }
+    return _weighted(terms), terms
+
+
+def refine_loss(refined: torch.Tensor, gt: Mapping[str, torch.Tensor], weights: Mapping[str, float],
+                ramp: float = 1.0) -> tuple[torch.Tensor, Terms]:
+    """Loss of the refinement net at full resolution: depth, its sig, and (v2) normals."""
+    terms: Terms = {
+        "depth0": weights["refine_depth"] * pointwise_l2(refined[:, :1], gt["inv_depth0"]),
+        "depth0_sig": weights["refine_depth_sig"] * ramp * sig_loss(refined[:, :1], gt["inv_depth0"], 1e-2, 1e-3),
+    }
+    if refined.shape[1] == 4:
+        terms["normal0"] = weights["refine_normals"] * pointwise_l2(refined[:, 1:], gt["normals0"])
+    return _weighted(terms), terms
+
+
+def ground_truth(batch: Mapping[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+    """DeMoN's ``prepare_ground_truth_tensors`` from a batch of samples (spec section 4):
+    inverse depth at levels 0, 2, 5 (median pyramid), flow at levels 2 and 5 from depth and
+    motion, normals at levels 0 and 2."""
+    inv0 = batch["inv_depth"]
+    pyramid = geo.inverse_depth_pyramid(inv0, levels=5)
+    k1, k2 = batch["intrinsics"], batch.get("intrinsics2", batch["intrinsics"])
+    motion = batch["motion"]
+    return {
+        "inv_depth0": pyramid[0], "inv_depth2": pyramid[2], "inv_depth5": pyramid[5],
+        "flow2": geo.flow_from_depth_motion(pyramid[2], motion, k1, k2),
+        "flow5": geo.flow_from_depth_motion(pyramid[5], motion, k1, k2),
+        "normals0": geo.normals_from_depth(pyramid[0], k1),
+        "normals2": geo.normals_from_depth(pyramid[2], k1),
+        "motion": motion,
+    }
+
+
+def ease_out_quad(step: int, duration: float) -> float:
+    """tfutils' ease_out_quad from 0 to 1 over ``duration`` steps (1 for duration <= 0)."""
+    if duration <= 0:
+        return 1.0
+    t = min(max(step / duration, 0.0), 1.0)
+    return 1 - (1 - t) ** 2
+
+
+def ease_in_quad_down(step: int, duration: float) -> float:
+    """tfutils' ease_in_quad from 1 to 0 over ``duration`` steps (0 for duration <= 0)."""
+    if duration <= 0:
+        return 0.0
+    t = min(max(step / duration, 0.0), 1.0)
+    return 1 - t * t
+
+
+def check_weights(weights: Mapping[str, float]) -> dict[str, float]:
+    missing = [k for k in WEIGHT_KEYS if k not in weights]
+    extra = [k for k in weights if k not in WEIGHT_KEYS and k != "name"]
+    if missing or extra:
+        raise ValueError(f"loss: weights {missing or extra} {'missing' if missing else 'unknown'}; "
+                         f"expected {', '.join(WEIGHT_KEYS)}")
+    out = {k: float(weights[k]) for k in WEIGHT_KEYS}
+    bad = [k for k, v in out.items() if not v >= 0]
+    if bad:
+        raise ValueError(f"loss.{bad[0]}: expected a non-negative weight, got {out[bad[0]]}")
+    return out

@@ -1,0 +1,106 @@
+"""Building blocks of DeMoN's encoder-decoders (spec section 1.0).
+
+Two variants: ``v1`` is the original Caffe network (symmetric ``k // 2`` padding), ``v2`` the
+released training code's (TF 'same' padding: for a stride-2 layer on an even size the extra pad
+goes at the end). Leaky ReLU with slope 0.1 follows every layer except predictions.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+VARIANTS = ("v1", "v2")
+
+
+def scaled(channels: int, width: float) -> int:
+    """A channel count under the width multiplier (at least 1)."""
+    return max(1, round(channels * width))
+
+
+def lrelu(x: torch.Tensor) -> torch.Tensor:
+    return F.leaky_relu(x, 0.1)
+
+
+def _same_padding(size: int, kernel: int, stride: int) -> tuple[int, int]:
+    """TF 'same' padding (before, after) along one axis."""
+    out = -(-size // stride)
+    total = max((out - 1) * stride + kernel - size, 0)
+    return total // 2, total - total // 2
+
+
+class Conv(nn.Module):
+    """A k_h x k_w convolution with DeMoN's padding, optionally followed by leaky ReLU."""
+
+    def __init__(self, c_in: int, c_out: int, kernel: tuple[int, int], stride: tuple[int, int],
+                 variant: str, relu: bool = True):
+        super().__init__()
+        self.conv = nn.Conv2d(c_in, c_out, kernel, stride)
+        self.kernel, self.stride, self.variant, self.relu = kernel, stride, variant, relu
+        nn.init.kaiming_normal_(self.conv.weight, a=0.0, nonlinearity="relu")  # TF variance scaling
+        nn.init.zeros_(self.conv.bias)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        (kh, kw), (sh, sw) = self.kernel, self.stride
+        if self.variant == "v1":
+            pad = (kw // 2, kw // 2, kh // 2, kh // 2)
+        else:
+            top, bottom = _same_padding(x.shape[2], kh, sh)
+            left, right = _same_padding(x.shape[3], kw, sw)
+            pad = (left, right, top, bottom)
+        y = self.conv(F.pad(x, pad))
+        return lrelu(y) if self.relu else y
+
+
+class ConvPair(nn.Module):
+    """DeMoN's ``convrelu2``: a k x 1 conv (stride (s, 1)) then a 1 x k conv (stride (1, s))."""
+
+    def __init__(self, c_in: int, c_out: int | tuple[int, int], kernel: int, stride: int, variant: str):
+        super().__init__()
+        c_y, c_x = (c_out, c_out) if isinstance(c_out, int) else c_out
+        self.y = Conv(c_in, c_y, (kernel, 1), (stride, 1), variant)
+        self.x = Conv(c_y, c_x, (1, kernel), (1, stride), variant)
+        self.out_channels = c_x
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.x(self.y(x))
+
+
+class UpConv(nn.Module):
+    """4x4 transposed convolution, stride 2: exactly twice the input size (a Caffe deconvolution
+    with pad 1)."""
+
+    def __init__(self, c_in: int, c_out: int, relu: bool = True):
+        super().__init__()
+        self.deconv = nn.ConvTranspose2d(c_in, c_out, 4, 2, 1)
+        self.relu = relu
+        nn.init.kaiming_normal_(self.deconv.weight, a=0.0, nonlinearity="relu")
+        nn.init.zeros_(self.deconv.bias)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        y = self.deconv(x)
+        return lrelu(y) if self.relu else y
+
+
+class Head(nn.Module):
+    """Prediction head: conv 3x3 -> ``hidden`` (leaky ReLU), conv 3x3 -> ``c_out`` (linear)."""
+
+    def __init__(self, c_in: int, c_out: int, variant: str, hidden: int = 24):
+        super().__init__()
+        self.hidden = Conv(c_in, hidden, (3, 3), (1, 1), variant)
+        self.out = Conv(hidden, c_out, (3, 3), (1, 1), variant, relu=False)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.out(self.hidden(x))
+
+
+def check_variant(variant: str) -> None:
+    if variant not in VARIANTS:
+        raise ValueError(f"variant: expected one of {VARIANTS}, got {variant!r}")
+
+
+def check_size(height: int, width: int) -> None:
+    if height % 32 or width % 32 or height < 32 or width < 32:
+        raise ValueError(f"input size: sides must be positive multiples of 32 (the coarsest level is "
+                         f"1/32 of the input), got {width}x{height}")

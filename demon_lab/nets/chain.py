@@ -1,0 +1,169 @@
+"""The DeMoN chain: bootstrap net, iterative net, refinement net (spec section 1.4).
+
+``DeMoN.forward(image1, image2, intrinsics, iterations=3, oracle=None, gt=None)`` returns one
+:class:`Prediction` per pass — index 0 is the bootstrap net, index k the k-th iterative pass —
+and the refined full-resolution inverse depth, so an iteration sweep is an argument, not a model.
+
+Oracles are inputs (DESIGN.md section 3): ``oracle="flow"`` replaces the flow (and confidence)
+fed to the depth-motion nets with the ground-truth flow; ``oracle="depth_motion"`` replaces the
+depth, normals and motion fed to the iterative flow net with ground truth. Both need ``gt`` with
+``inv_depth`` (B, 1, H, W) and ``motion`` (B, 6). The extra inputs of every net are built by
+:func:`flow_net_inputs` and :func:`depth_motion_net_inputs`, which the training stages share.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from demon_lab import geometry as geo
+from demon_lab.nets.blocks import check_size, check_variant
+from demon_lab.nets.depth_motion_net import DepthMotionNet
+from demon_lab.nets.flow_net import FlowNet
+from demon_lab.nets.refine_net import RefineNet
+
+ORACLES = (None, "flow", "depth_motion")
+
+
+@dataclass
+class Prediction:
+    """One pass of the chain, all at level 2 (1/4 of the input) except ``*5`` (level 5)."""
+
+    flow: torch.Tensor  # (B, 2, h, w) normalised
+    conf: torch.Tensor  # (B, 2, h, w)
+    flow5: torch.Tensor  # (B, 2, h/8, w/8)
+    conf5: torch.Tensor
+    inv_depth: torch.Tensor  # (B, 1, h, w), unit-baseline scale
+    normals: torch.Tensor  # (B, 3, h, w)
+    motion: torch.Tensor  # (B, 6)
+
+
+@dataclass
+class ChainOutput:
+    passes: list[Prediction]  # bootstrap, then one per iteration
+    refined: torch.Tensor  # (B, 1, H, W) inverse depth (v2: (B, 4, H, W) with normals)
+
+
+def finite(x: torch.Tensor) -> torch.Tensor:
+    """DeMoN's ``replace_nonfinite``: NaN and inf -> 0."""
+    return torch.nan_to_num(x, nan=0.0, posinf=0.0, neginf=0.0)
+
+
+def downsample_image(image: torch.Tensor) -> torch.Tensor:
+    """Image 2 at level 2, by 4x4 area averaging (the training code's ``resize_area``)."""
+    return F.avg_pool2d(image, 4)
+
+
+@dataclass
+class GroundTruthInputs:
+    """Ground truth at level 2 for the oracles."""
+
+    flow: torch.Tensor
+    inv_depth: torch.Tensor
+    normals: torch.Tensor
+    motion: torch.Tensor
+
+
+def ground_truth_inputs(gt: dict, intrinsics: torch.Tensor) -> GroundTruthInputs:
+    inv2 = geo.inverse_depth_pyramid(gt["inv_depth"], levels=2)[2]
+    return GroundTruthInputs(
+        flow=geo.flow_from_depth_motion(inv2, gt["motion"], intrinsics),
+        inv_depth=inv2, normals=geo.normals_from_depth(inv2, intrinsics), motion=gt["motion"])
+
+
+def flow_net_inputs(image2_2: torch.Tensor, inv_depth: torch.Tensor, normals: torch.Tensor,
+                    motion: torch.Tensor, intrinsics: torch.Tensor) -> torch.Tensor:
+    """The iterative flow net's 9 extra channels (stop-gradient): image 2 warped with the flow of
+    the previous depth+motion, that flow (vectors of norm >= 1, and NaN, set to 0), the previous
+    inverse depth and normals."""
+    with torch.no_grad():
+        flow = geo.flow_from_depth_motion(inv_depth, motion, intrinsics)
+        keep = (flow.norm(dim=1, keepdim=True) < 1)  # False for NaN
+        flow = torch.where(keep, flow, torch.zeros_like(flow))
+        warped = geo.warp_image(image2_2, flow)
+        return torch.cat([warped, flow, finite(inv_depth), finite(normals)], 1)
+
+
+def depth_motion_net_inputs(image2_2: torch.Tensor, flow: torch.Tensor, conf: torch.Tensor,
+                            prev_motion: torch.Tensor | None, intrinsics: torch.Tensor,
+                            variant: str) -> torch.Tensor:
+    """The depth-motion net's extra channels (stop-gradient): image 2 warped with the flow, the
+    flow and its confidence, and (iterative net) the depth triangulated from the flow with the
+    previous motion (v2 clips it to [0, 50])."""
+    with torch.no_grad():
+        flow = finite(flow)
+        parts = [geo.warp_image(image2_2, flow), flow, finite(conf)]
+        if prev_motion is not None:
+            clip = (0.0, 50.0) if variant == "v2" else None
+            parts.append(finite(geo.depth_from_flow_motion(flow, prev_motion, intrinsics, clip=clip)))
+        return torch.cat(parts, 1)
+
+
+class DeMoN(nn.Module):
+    """The whole chain. ``size`` is the input (H, W): sides multiples of 32."""
+
+    def __init__(self, variant: str = "v1", width: float = 1.0, size: tuple[int, int] = (192, 256)):
+        super().__init__()
+        check_variant(variant)
+        check_size(*size)
+        if not width > 0:
+            raise ValueError(f"width: expected a positive multiplier, got {width}")
+        self.variant, self.width, self.size = variant, width, tuple(size)
+        kw = dict(variant=variant, width=width, size=self.size)
+        self.flow1 = FlowNet(iterative=False, **kw)
+        self.dm1 = DepthMotionNet(iterative=False, **kw)
+        self.flow2 = FlowNet(iterative=True, **kw)
+        self.dm2 = DepthMotionNet(iterative=True, **kw)
+        self.refine_net = RefineNet(variant=variant, width=width)
+
+    def bootstrap(self, pair: torch.Tensor, image2_2: torch.Tensor, intrinsics: torch.Tensor,
+                  gt2: GroundTruthInputs | None = None, oracle: str | None = None) -> Prediction:
+        flowconf5, flowconf2 = self.flow1(pair)
+        flow, conf = flowconf2[:, :2], flowconf2[:, 2:]
+        dm_flow, dm_conf = (gt2.flow, _oracle_confidence(gt2.flow)) if oracle == "flow" else (flow, conf)
+        extra = depth_motion_net_inputs(image2_2, dm_flow, dm_conf, None, intrinsics, self.variant)
+        dm = self.dm1(pair, extra)
+        return Prediction(flow, conf, flowconf5[:, :2], flowconf5[:, 2:], dm.inv_depth, dm.normals, dm.motion)
+
+    def iterate(self, pair: torch.Tensor, image2_2: torch.Tensor, intrinsics: torch.Tensor,
+                prev: Prediction, gt2: GroundTruthInputs | None = None,
+                oracle: str | None = None) -> Prediction:
+        src = gt2 if oracle == "depth_motion" else prev
+        extra = flow_net_inputs(image2_2, src.inv_depth, src.normals, src.motion, intrinsics)
+        flowconf5, flowconf2 = self.flow2(pair, extra)
+        flow, conf = flowconf2[:, :2], flowconf2[:, 2:]
+        dm_flow, dm_conf = (gt2.flow, _oracle_confidence(gt2.flow)) if oracle == "flow" else (flow, conf)
+        extra = depth_motion_net_inputs(image2_2, dm_flow, dm_conf, prev.motion.detach(), intrinsics,
+                                        self.variant)
+        dm = self.dm2(pair, extra)
+        return Prediction(flow, conf, flowconf5[:, :2], flowconf5[:, 2:], dm.inv_depth, dm.normals, dm.motion)
+
+    def refine(self, image1: torch.Tensor, inv_depth2: torch.Tensor) -> torch.Tensor:
+        return self.refine_net(image1, inv_depth2.detach())
+
+    def forward(self, image1: torch.Tensor, image2: torch.Tensor, intrinsics: torch.Tensor,
+                iterations: int = 3, oracle: str | None = None, gt: dict | None = None) -> ChainOutput:
+        if oracle not in ORACLES:
+            raise ValueError(f"oracle: expected one of {ORACLES}, got {oracle!r}")
+        if iterations < 0:
+            raise ValueError(f"iterations: expected >= 0, got {iterations}")
+        if tuple(image1.shape[2:]) != self.size:
+            raise ValueError(f"image1: expected size {self.size[1]}x{self.size[0]} (H x W = {self.size}), "
+                             f"got {tuple(image1.shape[2:])}")
+        if oracle is not None and gt is None:
+            raise ValueError(f"oracle={oracle!r} needs gt with 'inv_depth' and 'motion'")
+        pair = torch.cat([image1, image2], 1)
+        image2_2 = downsample_image(image2)
+        gt2 = ground_truth_inputs(gt, intrinsics) if oracle is not None else None
+        passes = [self.bootstrap(pair, image2_2, intrinsics, gt2, oracle)]
+        for _ in range(iterations):
+            passes.append(self.iterate(pair, image2_2, intrinsics, passes[-1], gt2, oracle))
+        return ChainOutput(passes, self.refine(image1, passes[-1].inv_depth))
+
+
+def _oracle_confidence(flow: torch.Tensor) -> torch.Tensor:
+    """Confidence fed with ground-truth flow: 1 where the flow is known, 0 elsewhere."""
+    return torch.isfinite(flow).to(flow.dtype)

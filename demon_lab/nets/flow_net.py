@@ -1,0 +1,90 @@
+"""DeMoN's flow encoder-decoder (``flow_block``; spec section 1.1): bootstrap and iterative."""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from demon_lab.nets.blocks import ConvPair, Head, UpConv, check_variant, lrelu, scaled
+
+
+class Dense5(nn.Module):
+    """v2's global layer: an fc over the first 96 channels of conv5_1, reshaped and appended."""
+
+    def __init__(self, channels: int, level5: tuple[int, int]):
+        super().__init__()
+        self.channels, self.level5 = channels, level5
+        units = channels * level5[0] * level5[1]
+        self.fc = nn.Linear(units, units)
+        nn.init.kaiming_normal_(self.fc.weight, nonlinearity="relu")
+        nn.init.zeros_(self.fc.bias)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        head = x[:, : self.channels].flatten(1)  # C, H, W order
+        y = lrelu(self.fc(head)).view(x.shape[0], self.channels, *self.level5)
+        return torch.cat([x, y], 1)
+
+
+class FlowNet(nn.Module):
+    """Predicts optical flow and its confidence at 1/32 (level 5) and 1/4 (level 2) of the input.
+
+    Args:
+        iterative: the iterative net's encoder (conv2 with 32 channels plus 9 extra inputs at
+            level 2: warped image 2, flow from the previous depth+motion, previous depth and
+            normals); otherwise the bootstrap net.
+        variant: 'v1' (Caffe port) or 'v2' (released training code).
+        width: multiplier of every channel count.
+        size: (H, W) of the input; v2's dense layer depends on it.
+
+    ``forward(pair, extra=None)`` with ``pair`` (B, 6, H, W) = [image 1, image 2] returns
+    ``(flowconf5, flowconf2)``: (B, 4, H/32, W/32) and (B, 4, H/4, W/4), channels
+    [flow x, flow y, confidence x, confidence y], flow normalised.
+    """
+
+    def __init__(self, iterative: bool = False, variant: str = "v1", width: float = 1.0,
+                 size: tuple[int, int] = (192, 256)):
+        super().__init__()
+        check_variant(variant)
+        self.iterative, self.variant = iterative, variant
+        c = lambda n: scaled(n, width)  # noqa: E731
+        v1 = variant == "v1"
+        self.conv1 = ConvPair(6, c(32) if v1 else (c(24), c(32)), 9, 2, variant)
+        c2 = c(32) if iterative else (c(64) if v1 else (c(48), c(64)))
+        self.conv2 = ConvPair(c(32), c2, 7, 2, variant)
+        if iterative:
+            self.conv2_extra = ConvPair(9, c(32), 3, 1, variant)
+        self.conv2_1 = ConvPair(c(64), c(64), 3, 1, variant)
+        self.conv3 = ConvPair(c(64), c(128) if v1 else (c(96), c(128)), 5, 2, variant)
+        self.conv3_1 = ConvPair(c(128), c(128), 3, 1, variant)
+        self.conv4 = ConvPair(c(128), c(256) if v1 else (c(192), c(256)), 5, 2, variant)
+        self.conv4_1 = ConvPair(c(256), c(256), 3, 1, variant)
+        c5 = c(512) if v1 else c(384)
+        self.conv5 = ConvPair(c(256), c5, 5, 2, variant)
+        self.conv5_1 = ConvPair(c5, c5, 3, 1, variant)
+        if not v1:
+            self.dense5 = Dense5(c(96), (size[0] // 32, size[1] // 32))
+            c5 += c(96)
+        self.predict_flow5 = Head(c5, 4, variant, hidden=c(24))
+        self.upsample_flow5to4 = UpConv(4, 2, relu=False)
+        self.refine4 = UpConv(c5, c(256))
+        self.refine3 = UpConv(c(256) + c(256) + 2, c(128))
+        self.refine2 = UpConv(c(128) + c(128), c(64))
+        self.predict_flow2 = Head(c(64) + c(64), 4, variant, hidden=c(24))
+
+    def forward(self, pair: torch.Tensor, extra: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        x = self.conv2(self.conv1(pair))
+        if self.iterative:
+            if extra is None:
+                raise ValueError("extra: the iterative flow net needs its 9 extra input channels")
+            x = torch.cat([x, self.conv2_extra(extra)], 1)
+        conv2_1 = self.conv2_1(x)
+        conv3_1 = self.conv3_1(self.conv3(conv2_1))
+        conv4_1 = self.conv4_1(self.conv4(conv3_1))
+        conv5_1 = self.conv5_1(self.conv5(conv4_1))
+        if self.variant == "v2":
+            conv5_1 = self.dense5(conv5_1)
+        flowconf5 = self.predict_flow5(conv5_1)
+        r4 = torch.cat([self.refine4(conv5_1), conv4_1, self.upsample_flow5to4(flowconf5)], 1)
+        r3 = torch.cat([self.refine3(r4), conv3_1], 1)
+        r2 = torch.cat([self.refine2(r3), conv2_1], 1)
+        return flowconf5, self.predict_flow2(r2)
