@@ -1,0 +1,190 @@
+"""Networks: parameter counts from the spec's layer tables, shapes, gradients; losses: values."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+import yaml
+
+from demon_lab import losses
+from demon_lab.nets import DeMoN, DepthMotionNet, FlowNet, RefineNet
+
+
+def count(module: torch.nn.Module) -> int:
+    return sum(p.numel() for p in module.parameters())
+
+
+def test_v1_parameter_counts_match_the_layer_tables():
+    chain = DeMoN("v1", width=1.0, size=(192, 256))
+    bootstrap = count(chain.flow1) + count(chain.dm1)
+    iterative = count(chain.flow2) + count(chain.dm2)
+    # Sums of the spec's layer tables (section 1), layer by layer:
+    assert count(chain.flow1) == 8_279_866
+    assert count(chain.dm1) == 14_367_331
+    assert bootstrap == 22_647_197 and round(bootstrap / 1e6, 2) == 22.65
+    assert iterative == 22_622_557 and round(iterative / 1e6, 2) == 22.62
+    assert count(chain.refine_net) == 484_129 and round(count(chain.refine_net) / 1e6, 2) == 0.48
+    assert round(count(chain) / 1e6, 2) == 45.75
+
+
+@pytest.mark.parametrize("variant", ["v1", "v2"])
+@pytest.mark.parametrize("size", [(64, 96), (96, 128)])
+def test_output_shapes_at_every_level(variant, size):
+    H, W = size
+    torch.manual_seed(0)
+    pair = torch.rand(2, 6, H, W) - 0.5
+    flow1 = FlowNet(False, variant, 0.25, size)
+    flow5, flow2 = flow1(pair)
+    assert flow5.shape == (2, 4, H // 32, W // 32) and flow2.shape == (2, 4, H // 4, W // 4)
+    flow_it = FlowNet(True, variant, 0.25, size)
+    assert flow_it(pair, torch.rand(2, 9, H // 4, W // 4))[1].shape == (2, 4, H // 4, W // 4)
+    with pytest.raises(ValueError, match="extra"):
+        flow_it(pair)
+    dm = DepthMotionNet(True, variant, 0.25, size)(pair, torch.rand(2, 8, H // 4, W // 4))
+    assert dm.inv_depth.shape == (2, 1, H // 4, W // 4) and dm.normals.shape == (2, 3, H // 4, W // 4)
+    assert dm.motion.shape == (2, 6) and dm.scale.shape == (2, 1)
+    refined = RefineNet(variant, 0.25)(pair[:, :3], dm.inv_depth)
+    assert refined.shape == (2, 1 if variant == "v1" else 4, H, W)
+
+
+def test_depth_is_the_predicted_scale_times_the_raw_depth():
+    torch.manual_seed(1)
+    net = DepthMotionNet(False, "v1", 0.25, (64, 64))
+    pair, extra = torch.rand(1, 6, 64, 64), torch.rand(1, 7, 16, 16)
+    out = net(pair, extra)
+    with torch.no_grad():
+        net.motion_fc3.bias[6] += 1.0  # change only the scale output
+    out2 = net(pair, extra)
+    raw = out.inv_depth / out.scale[:, :, None, None]
+    torch.testing.assert_close(out2.inv_depth, raw * out2.scale[:, :, None, None])
+    torch.testing.assert_close(out2.motion, out.motion)
+
+
+def test_chain_forward_backward_and_iterations():
+    torch.manual_seed(2)
+    chain = DeMoN("v1", width=0.25, size=(64, 96))
+    image1, image2 = torch.rand(2, 3, 64, 96) - 0.5, torch.rand(2, 3, 64, 96) - 0.5
+    K = torch.tensor([[0.89, 1.19, 0.5, 0.5]] * 2)
+    out = chain(image1, image2, K, iterations=3)
+    assert len(out.passes) == 4 and out.refined.shape == (2, 1, 64, 96)
+    loss = sum(p.inv_depth.abs().mean() + p.flow.abs().mean() + p.motion.abs().mean() for p in out.passes)
+    (loss + out.refined.mean()).backward()
+    for name in ("flow1", "dm1", "flow2", "dm2", "refine_net"):
+        grads = [p.grad for p in getattr(chain, name).parameters()]
+        assert all(g is not None and torch.isfinite(g).all() for g in grads), name
+    assert len(chain(image1, image2, K, iterations=0).passes) == 1
+
+
+def test_oracles_replace_the_inputs():
+    torch.manual_seed(3)
+    chain = DeMoN("v1", width=0.25, size=(64, 64)).eval()
+    image1, image2 = torch.rand(1, 3, 64, 64) - 0.5, torch.rand(1, 3, 64, 64) - 0.5
+    K = torch.tensor([[0.89, 1.19, 0.5, 0.5]])
+    gt = {"inv_depth": torch.full((1, 1, 64, 64), 0.3), "motion": torch.tensor([[0.0, 0.05, 0, 0.5, 0, 0]])}
+    gt2 = {"inv_depth": torch.full((1, 1, 64, 64), 0.6), "motion": gt["motion"]}
+    with torch.no_grad():
+        plain = chain(image1, image2, K, iterations=1)
+        flow_a = chain(image1, image2, K, iterations=1, oracle="flow", gt=gt)
+        flow_b = chain(image1, image2, K, iterations=1, oracle="flow", gt=gt2)
+        dm_a = chain(image1, image2, K, iterations=1, oracle="depth_motion", gt=gt)
+    # the GT flow changes the depth-motion nets' output but not the flow nets'
+    torch.testing.assert_close(flow_a.passes[0].flow, plain.passes[0].flow)
+    assert not torch.allclose(flow_a.passes[0].inv_depth, flow_b.passes[0].inv_depth)
+    # the depth+motion oracle changes only what the iterative flow net sees
+    torch.testing.assert_close(dm_a.passes[0].inv_depth, plain.passes[0].inv_depth)
+    assert not torch.allclose(dm_a.passes[1].flow, plain.passes[1].flow)
+    with pytest.raises(ValueError, match="needs gt"):
+        chain(image1, image2, K, oracle="flow")
+
+
+@pytest.mark.parametrize("kwargs, message", [
+    (dict(size=(100, 128)), "multiples of 32"),
+    (dict(variant="v3"), "variant"),
+    (dict(width=0.0), "width"),
+])
+def test_bad_chain_options(kwargs, message):
+    with pytest.raises(ValueError, match=message):
+        DeMoN(**{"size": (64, 64), **kwargs})
+
+
+# ----------------------------------------------------------------------------- losses
+
+
+def test_pointwise_l2_hand_computed():
+    pred = torch.tensor([[[[3.0, 0.0]], [[4.0, 0.0]]]])  # (1, 2, 1, 2)
+    gt = torch.tensor([[[[0.0, math.nan]], [[0.0, 0.0]]]])
+    # pixel 0: sqrt(9 + 16 + eps); pixel 1: NaN GT -> d = 0 -> sqrt(eps), still counted
+    expected = (math.sqrt(25 + 1e-5) + math.sqrt(1e-5)) / 2
+    assert losses.pointwise_l2(pred, gt).item() == pytest.approx(expected)
+
+
+def test_vector_loss_and_confidence_target():
+    pred = torch.tensor([[1.0, -2.0, 0.0]])
+    assert losses.vector_loss(pred, torch.zeros(1, 3)).item() == pytest.approx(
+        math.sqrt(1 + 1e-5) + math.sqrt(4 + 1e-5) + math.sqrt(1e-5))
+    conf = losses.confidence_target(torch.tensor([[0.1, 0.0]]), torch.tensor([[0.0, 0.0]]))
+    torch.testing.assert_close(conf, torch.tensor([[math.exp(-1.0), 1.0]]))
+
+
+def test_sig_loss_is_zero_for_a_scaled_copy_and_positive_otherwise():
+    x = torch.rand(2, 1, 16, 16) + 0.5
+    assert losses.sig_loss(3 * x, x, eps_pred=0, eps_gt=0).item() == pytest.approx(math.sqrt(1e-5), rel=1e-3)
+    assert losses.sig_loss(x.flip(-1), x).item() > 0.05
+
+
+def test_ramps():
+    assert losses.ease_out_quad(0, 100) == 0 and losses.ease_out_quad(50, 100) == 0.75
+    assert losses.ease_out_quad(200, 100) == 1 and losses.ease_out_quad(5, 0) == 1
+    assert losses.ease_in_quad_down(0, 100) == 1 and losses.ease_in_quad_down(50, 100) == 0.75
+    assert losses.ease_in_quad_down(100, 100) == 0
+    # DeMoN's dm1 depth-sig ramp runs over twice the stage: it ends at 75 %
+    assert losses.ease_out_quad(1_000_000, 2_000_000) == 0.75
+
+
+def _preset(name: str) -> dict:
+    from pathlib import Path
+
+    conf = Path(__file__).resolve().parents[1] / "conf" / "loss"
+    data = yaml.safe_load((conf / f"{name}.yaml").read_text())
+    base = {}
+    for parent in data.pop("defaults", []):
+        base.update(_preset(parent))
+    return {**base, **data}
+
+
+def test_loss_presets():
+    supp = losses.check_weights(_preset("supplementary"))
+    assert (supp["flow"], supp["flow_conf"], supp["depth"], supp["normals"], supp["flow_sig"],
+            supp["depth_sig"], supp["translation"], supp["rotation"]) == (1000, 1000, 300, 100, 1000, 1500, 15, 160)
+    code = losses.check_weights(_preset("released_code"))
+    assert (code["flow"], code["flow_conf"], code["flow_sig"], code["depth"], code["depth_sig"],
+            code["normals"], code["translation"]) == (500, 25, 250, 150, 375, 25, 45)
+    assert losses.check_weights(_preset("no_sig"))["depth_sig"] == 0
+    assert losses.check_weights(_preset("no_normals"))["normals"] == 0
+    assert losses.check_weights(_preset("no_confidence"))["flow_conf"] == 0
+    assert losses.check_weights(_preset("depth_sig_1000"))["depth_sig"] == 1000
+    with pytest.raises(ValueError, match="missing"):
+        losses.check_weights({"flow": 1.0})
+
+
+def test_every_term_is_reported_and_weighted():
+    torch.manual_seed(4)
+    H, W = 64, 64
+    batch = {"inv_depth": torch.rand(2, 1, H, W) + 0.2, "motion": torch.tensor([[0, 0.1, 0, 1.0, 0, 0]] * 2),
+             "intrinsics": torch.tensor([[0.9, 1.2, 0.5, 0.5]] * 2)}
+    gt = losses.ground_truth(batch)
+    assert gt["inv_depth2"].shape == (2, 1, 16, 16) and gt["flow5"].shape == (2, 2, 2, 2)
+    weights = losses.check_weights(_preset("supplementary"))
+    flow5, flow2 = torch.rand(2, 4, 2, 2), torch.rand(2, 4, 16, 16)
+    total, terms = losses.flow_loss(flow5, flow2, gt, weights, ramp=0.5, level5=0.25)
+    assert set(terms) == {"flow2", "conf2", "flow2_sig", "conf2_sig", "flow5", "conf5"}
+    assert total.item() == pytest.approx(sum(t.item() for t in terms.values()))
+    assert terms["flow5"].item() == pytest.approx(1000 * 0.25 * losses.pointwise_l2(flow5[:, :2], gt["flow5"]).item())
+    _, no5 = losses.flow_loss(flow5, flow2, gt, weights, level5=0.0)
+    assert "flow5" not in no5
+    total, terms = losses.depth_motion_loss(torch.rand(2, 1, 16, 16), torch.rand(2, 3, 16, 16),
+                                            torch.zeros(2, 6), gt, weights)
+    assert set(terms) == {"depth2", "depth2_sig", "normal2", "rotation", "translation"}
+    assert terms["translation"].item() == pytest.approx(15 * (1 + 2 * math.sqrt(1e-5) + 0), rel=1e-4)
