@@ -1,0 +1,75 @@
+"""``python -m demon_lab [overrides]``: compose, validate, run (DESIGN.md section 1).
+
+The configuration of every job (each combination of a ``-m`` sweep) is composed and validated
+before Hydra starts, so a bad key, type or value is one line and a non-zero exit, with no MLflow
+run created.
+"""
+
+from __future__ import annotations
+
+import itertools
+import sys
+from pathlib import Path
+
+CONF = str(Path(__file__).resolve().parent.parent / "conf")
+MAX_CHECKED_JOBS = 256
+
+
+def _job_overrides(args: list[str]) -> list[list[str]]:
+    """The overrides of each job: sweeps (a=1,2) expanded, Hydra's own options left out."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    plain = [a for a in args if not a.startswith("-") and not a.lstrip("+~").startswith(("hydra.", "hydra/"))]
+    parsed = OverridesParser.create().parse_overrides(plain)
+    choices = []
+    for o in parsed:
+        if o.is_sweep_override():
+            choices.append([f"{o.get_key_element()}={v}" for v in o.sweep_string_iterator()])
+        else:
+            choices.append([o.input_line])
+    jobs = [list(c) for c in itertools.product(*choices)] if choices else [[]]
+    return jobs[:MAX_CHECKED_JOBS]
+
+
+def check(args: list[str]) -> str | None:
+    """None if every job's config composes and validates, else the error line."""
+    from hydra import compose, initialize_config_dir
+    from hydra.errors import HydraException
+    from omegaconf.errors import OmegaConfBaseException
+
+    from demon_lab.config import ConfigError
+    from demon_lab.validate import validate
+
+    try:
+        jobs = _job_overrides(args)
+    except HydraException as e:
+        return str(e).splitlines()[0]
+    with initialize_config_dir(CONF, version_base="1.3"):
+        for overrides in jobs:
+            try:
+                validate(compose("config", overrides=overrides))
+            except ConfigError as e:
+                return str(e)
+            except (HydraException, OmegaConfBaseException) as e:
+                lines = [line.strip() for line in str(e).splitlines() if line.strip()]
+                return " ".join(lines[:2]) if lines else type(e).__name__
+    return None
+
+
+def main() -> None:
+    args = sys.argv[1:]
+    if not any(a in ("--help", "-h", "--hydra-help", "--info", "--cfg", "-c", "--shell-completion") or
+               a.startswith(("--cfg", "--info", "-c")) for a in args):
+        error = check(args)
+        if error:
+            print(f"error: {error}", file=sys.stderr)
+            sys.exit(2)
+    import hydra
+
+    from demon_lab.app import main_task
+
+    hydra.main(version_base="1.3", config_path=CONF, config_name="config")(main_task)()
+
+
+if __name__ == "__main__":
+    main()

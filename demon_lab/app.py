@@ -1,0 +1,228 @@
+"""The main job: validate, track, train what the stage cache lacks, evaluate, report.
+
+``run(cfg)`` is what ``python -m demon_lab`` executes for each (multirun) job.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import math
+import sys
+import tempfile
+from pathlib import Path
+from typing import Any
+
+from omegaconf import DictConfig, OmegaConf
+
+from demon_lab.config import ConfigError
+from demon_lab.validate import validate
+
+TABLE_COLUMNS = (("l1_inv", "L1-inv"), ("sc_inv", "sc-inv"), ("l1_rel", "L1-rel"), ("delta_1.25", "d<1.25"),
+                 ("rot_deg", "rot"), ("tran_deg", "tran"), ("epe", "EPE"))
+
+
+def job_tags(cfg: DictConfig, key: str) -> dict[str, str]:
+    import platform
+
+    import torch
+
+    from demon_lab.tracking import TAG, git_state
+
+    return {
+        f"{TAG}run_key": key, f"{TAG}experiment": cfg.experiment, f"{TAG}row": str(cfg.row),
+        f"{TAG}seed": str(cfg.seed), f"{TAG}scale": str(cfg.scale.name), f"{TAG}data": str(cfg.data.name),
+        f"{TAG}iterations": str(cfg.iterations), f"{TAG}oracle": str(cfg.oracle),
+        **{f"{TAG}{k}": v for k, v in git_state().items()},
+        f"{TAG}torch": torch.__version__, f"{TAG}cuda": str(torch.version.cuda),
+        f"{TAG}device": "cuda" if torch.cuda.is_available() else "cpu", f"{TAG}host_python": platform.python_version(),
+    }
+
+
+def format_table(summary: dict[str, dict[str, float]], iterations: int) -> str:
+    header = ["test set", "pass", *[label for _, label in TABLE_COLUMNS]]
+    rows = []
+    for name, values in summary.items():
+        for it in [*range(iterations + 1), "refined"]:
+            prefix = "refined" if it == "refined" else f"it{it}"
+            cells = []
+            for key, _ in TABLE_COLUMNS:
+                v = values.get(f"{prefix}/{key}", math.nan)
+                cells.append("-" if v != v else f"{v:.3f}")
+            rows.append([name, str(it), *cells])
+    widths = [max(len(r[i]) for r in [header, *rows]) for i in range(len(header))]
+    fmt = lambda r: "  ".join(c.rjust(w) if i > 1 else c.ljust(w) for i, (c, w) in enumerate(zip(r, widths)))  # noqa: E731
+    return "\n".join([fmt(header), "  ".join("-" * w for w in widths), *map(fmt, rows)])
+
+
+def run(cfg: DictConfig) -> dict[str, Any]:
+    """One job. Returns {'status': 'finished'|'skipped', 'run_id': ..., 'summary': ...}."""
+    validate(cfg)
+    from demon_lab.tracking import Tracker, flatten, run_key
+
+    key = run_key(cfg)
+    tracker = Tracker(cfg.tracking.uri, cfg.experiment, cfg.tracking.artifact_dir)
+    if not cfg.force:
+        existing = tracker.find_finished(key)
+        if existing:
+            print(f"[demon_lab] skipped: run key {key} already has the FINISHED run {existing} "
+                  f"(experiment {cfg.experiment!r}); pass force=true to run it again")
+            return {"status": "skipped", "run_id": existing, "run_key": key}
+    parent = _parent_run(cfg, tracker)
+    run_id = tracker.start(f"{cfg.experiment}-{key[:8]}", job_tags(cfg, key), parent_id=parent)
+    try:
+        resolved = OmegaConf.to_yaml(cfg, resolve=True)
+        tracker.log_params(run_id, flatten(OmegaConf.to_container(cfg, resolve=True)))
+        tracker.log_text(run_id, resolved, "config.yaml")
+        result = _train_and_evaluate(cfg, tracker, run_id)
+        tracker.finish(run_id, "FINISHED")
+        return {"status": "finished", "run_id": run_id, "run_key": key, **result}
+    except BaseException as e:
+        tracker.fail(run_id, e)
+        raise
+
+
+def _parent_run(cfg: DictConfig, tracker) -> str | None:
+    """The multirun's parent run id (created once per sweep by the Hydra callback), if any."""
+    import os
+
+    return os.environ.get("DEMON_LAB_PARENT_RUN") or None
+
+
+def _train_and_evaluate(cfg: DictConfig, tracker, run_id: str) -> dict[str, Any]:
+    from demon_lab.config import instantiate
+    from demon_lab.evaluate import evaluate_dataset, summarize
+    from demon_lab.tracking import TAG, stage_logger
+    from demon_lab.train import prepare_chain
+
+    loggers: list = []
+
+    def on_stage(stage, status):
+        print(f"[demon_lab] stage {stage.name}: {'cached ' + str(stage.path) if status == 'cached' else 'training'}",
+              flush=True)
+        if status == "cached":
+            return None
+        child = tracker.start(f"stage-{stage.name}", {f"{TAG}stage": stage.name, f"{TAG}stage_key": stage.key,
+                                                     f"{TAG}kind": "stage"}, parent_id=run_id)
+        logger = stage_logger(tracker, child, int(cfg.tracking.log_every_n_steps))
+        loggers.append((child, logger))
+        return logger
+
+    try:
+        chain, stages, figures = prepare_chain(cfg, on_stage, progress=sys.stderr.isatty())
+    except BaseException as e:
+        for child, _ in loggers:
+            tracker.fail(child, e)
+        raise
+    for child, logger in loggers:
+        logger.flush()
+        tracker.finish(child)
+    stage_keys = {s.name: {"key": s.key, "path": str(s.path)} for s in stages}
+    tracker.log_text(run_id, json.dumps(stage_keys, indent=2) + "\n", "stage_keys.json")
+    train_metrics = {}
+    for name, fig in figures.items():
+        for k, v in fig.items():
+            train_metrics[f"stage/{name}/{k}"] = v
+    logging_seconds = sum(logger.seconds for _, logger in loggers)
+    train_seconds = sum(f.get("seconds", 0.0) for f in figures.values())
+    if train_seconds > 0:
+        train_metrics["train/logging_share"] = logging_seconds / train_seconds
+    tracker.log_metrics(run_id, train_metrics)
+
+    summary: dict[str, dict[str, float]] = {}
+    all_rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for entry in cfg.data.test:
+            dataset = instantiate(entry)
+            rows, kept = evaluate_dataset(chain, dataset, int(cfg.iterations), cfg.oracle, int(cfg.eval.batch_size),
+                                          cfg.eval.max_samples, keep=max(int(cfg.eval.visualize), int(cfg.eval.point_clouds)))
+            summary[dataset.name] = summarize(rows, int(cfg.iterations))
+            all_rows += [{"dataset": dataset.name, **r} for r in rows]
+            _save_visuals(Path(tmp), dataset.name, kept, int(cfg.eval.visualize), int(cfg.eval.point_clouds))
+        metrics = {f"test/{name}/{k}": v for name, values in summary.items() for k, v in values.items()}
+        tracker.log_metrics(run_id, metrics)
+        (Path(tmp) / "per_sample_metrics.csv").write_text(_csv(all_rows))
+        tracker.log_artifact(run_id, Path(tmp) / "per_sample_metrics.csv")
+        for sub in ("images", "point_clouds"):
+            if (Path(tmp) / sub).is_dir():
+                tracker.log_artifact(run_id, Path(tmp) / sub)
+    table = format_table(summary, int(cfg.iterations))
+    tracker.log_text(run_id, table + "\n", "results.txt")
+    print(f"\n[demon_lab] results (scale {cfg.scale.name}, seed {cfg.seed}, {cfg.iterations} iterations"
+          f"{', oracle ' + str(cfg.oracle) if cfg.oracle else ''}; depth metrics on unit-baseline depth, "
+          f"rot/tran in degrees, EPE in normalised flow units):\n{table}\n", flush=True)
+    return {"summary": summary, "figures": figures}
+
+
+def _csv(rows: list[dict[str, Any]]) -> str:
+    keys: list[str] = []
+    for r in rows:
+        keys += [k for k in r if k not in keys]
+    out = io.StringIO()
+    writer = csv.DictWriter(out, fieldnames=keys)
+    writer.writeheader()
+    writer.writerows(rows)
+    return out.getvalue()
+
+
+def _save_visuals(root: Path, name: str, kept: list[dict], n_images: int, n_clouds: int) -> None:
+    import cv2
+    import numpy as np
+
+    from demon_lab import geometry as geo
+
+    def colour(x: np.ndarray, lo: float, hi: float) -> np.ndarray:
+        v = np.nan_to_num((x - lo) / max(hi - lo, 1e-9), nan=0.0).clip(0, 1)
+        return cv2.applyColorMap((v * 255).astype(np.uint8), cv2.COLORMAP_MAGMA)
+
+    for i, s in enumerate(kept[:n_images]):
+        (root / "images").mkdir(exist_ok=True)
+        gt = s["gt_inv_depth"].numpy()
+        lo, hi = float(np.nanmin(gt)), float(np.nanmax(gt))
+        h, w = gt.shape
+        pred = cv2.resize(s["inv_depth"].numpy(), (w, h), interpolation=cv2.INTER_NEAREST)
+        image = ((s["image1"].permute(1, 2, 0).numpy() + 0.5) * 255).clip(0, 255).astype(np.uint8)[:, :, ::-1]
+        flow = s["flow"].numpy()
+        mag, ang = cv2.cartToPolar(flow[0] * w, flow[1] * h)
+        hsv = np.zeros((*flow.shape[1:], 3), np.uint8)
+        hsv[..., 0], hsv[..., 1] = (ang * 90 / np.pi).astype(np.uint8), 255
+        hsv[..., 2] = (mag / max(float(mag.max()), 1e-6) * 255).astype(np.uint8)
+        flow_img = cv2.resize(cv2.cvtColor(hsv, cv2.COLOR_HSV2BGR), (w, h), interpolation=cv2.INTER_NEAREST)
+        normals = cv2.resize(((np.nan_to_num(s["normals"].numpy().transpose(1, 2, 0)) + 1) * 127.5).clip(0, 255)
+                             .astype(np.uint8), (w, h), interpolation=cv2.INTER_NEAREST)
+        row = np.concatenate([image, colour(gt, lo, hi), colour(pred, lo, hi), flow_img, normals], 1)
+        safe = "".join(c if c.isalnum() or c in "-_" else "_" for c in f"{name}_{i}_{s['id']}")
+        cv2.imwrite(str(root / "images" / f"{safe}.png"), row)
+    for i, s in enumerate(kept[:n_clouds]):
+        (root / "point_clouds").mkdir(exist_ok=True)
+        inv = s["inv_depth"][None, None].double()
+        h, w = inv.shape[2:]
+        rays = geo._rays(h, w, s["intrinsics"][None].double())[0]
+        valid = (inv[0, 0] > 0) & torch_isfinite(inv[0, 0])
+        points = (rays / inv[0]).permute(1, 2, 0)[valid].numpy()
+        img = cv2.resize(((s["image1"].permute(1, 2, 0).numpy() + 0.5) * 255).clip(0, 255).astype(np.uint8), (w, h),
+                         interpolation=cv2.INTER_AREA)[valid.numpy()]
+        safe = "".join(c if c.isalnum() or c in "-_" else "_" for c in f"{name}_{i}_{s['id']}")
+        lines = [f"{x:.5f} {y:.5f} {z:.5f} {r} {g} {b}" for (x, y, z), (r, g, b) in zip(points, img)]
+        header = ["ply", "format ascii 1.0", f"element vertex {len(lines)}", "property float x", "property float y",
+                  "property float z", "property uchar red", "property uchar green", "property uchar blue", "end_header"]
+        (root / "point_clouds" / f"{safe}.ply").write_text("\n".join(header + lines) + "\n")
+
+
+def torch_isfinite(x):
+    import torch
+
+    return torch.isfinite(x)
+
+
+def main_task(cfg: DictConfig) -> None:
+    """Hydra task: one line on a configuration or data error, non-zero exit."""
+    from demon_lab.data.sample import DataError
+    from demon_lab.tracking import TrackingError
+
+    try:
+        run(cfg)
+    except (ConfigError, DataError, TrackingError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        sys.exit(2)

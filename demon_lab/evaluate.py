@@ -1,0 +1,67 @@
+"""Evaluate a chain on test sets with DeMoN's protocol, for every iteration and the refined depth.
+
+Per test set, for iteration k = 0 (bootstrap) .. ``iterations``: depth metrics of the level-2
+depth, motion metrics and flow EPE of pass k; for ``refined``: depth metrics of the refinement
+net's depth and the motion of the last pass. The summary metric of a set (``test/<set>/<metric>``
+in MLflow) is the refined depth with the last pass's motion and flow, as DeMoN's summary uses
+``3_refined`` for depth and ``3`` for motion.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+import torch
+from torch.utils.data import DataLoader
+
+from demon_lab import metrics
+from demon_lab.nets.chain import DeMoN
+
+
+@torch.no_grad()
+def evaluate_dataset(chain: DeMoN, dataset, iterations: int, oracle: str | None = None,
+                     batch_size: int = 4, max_samples: int | None = None,
+                     keep: int = 0) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
+    """Per-sample metric rows (one per sample and iteration, ``it`` = 0..N or 'refined') and the
+    raw predictions of the first ``keep`` samples (for visualisations)."""
+    n = len(dataset) if max_samples is None else min(len(dataset), int(max_samples))
+    subset = torch.utils.data.Subset(dataset, range(n))
+    device = next(chain.parameters()).device
+    rows: list[dict[str, Any]] = []
+    kept: list[dict[str, Any]] = []
+    for batch in DataLoader(subset, batch_size=batch_size, shuffle=False):
+        b = {k: v.to(device) if isinstance(v, torch.Tensor) else v for k, v in batch.items()}
+        gt = {"inv_depth": b["inv_depth"], "motion": b["motion"]} if oracle else None
+        out = chain(b["image1"], b["image2"], b["intrinsics"], iterations=iterations, oracle=oracle, gt=gt)
+        for i in range(b["image1"].shape[0]):
+            truth = {"inv_depth": batch["inv_depth"][i, 0], "motion": batch["motion"][i],
+                     "intrinsics": batch["intrinsics"][i], "flow": batch["flow"][i]}
+            for k, p in enumerate(out.passes):
+                pred = {"inv_depth": p.inv_depth[i, 0].cpu(), "motion": p.motion[i].cpu(), "flow": p.flow[i].cpu()}
+                rows.append({"id": batch["id"][i], "it": k, **metrics.evaluate_sample(pred, truth)})
+            last = out.passes[-1]
+            refined = {"inv_depth": out.refined[i, 0].cpu(), "motion": last.motion[i].cpu(), "flow": last.flow[i].cpu()}
+            rows.append({"id": batch["id"][i], "it": "refined", **metrics.evaluate_sample(refined, truth)})
+            if len(kept) < keep:
+                kept.append({"id": batch["id"][i], "image1": batch["image1"][i], "gt_inv_depth": batch["inv_depth"][i, 0],
+                             "inv_depth": out.refined[i, 0].cpu(), "flow": last.flow[i].cpu(),
+                             "normals": last.normals[i].cpu(), "intrinsics": batch["intrinsics"][i]})
+    return rows, kept
+
+
+def summarize(rows: Sequence[dict[str, Any]], iterations: int) -> dict[str, float]:
+    """Means over samples: ``it<k>/<metric>``, ``refined/<metric>`` and the summary ``<metric>``."""
+    out: dict[str, float] = {}
+    groups = [*range(iterations + 1), "refined"]
+    for it in groups:
+        means = metrics.summarize([{k: v for k, v in r.items() if k != "it"} for r in rows if r["it"] == it])
+        prefix = "refined" if it == "refined" else f"it{it}"
+        out.update({f"{prefix}/{k}": v for k, v in means.items() if not k.startswith("n_failed")})
+    for key in metrics.DEPTH_KEYS:
+        if f"refined/{key}" in out:
+            out[key] = out[f"refined/{key}"]
+    for key in (*metrics.MOTION_KEYS, "epe"):
+        if f"it{iterations}/{key}" in out:
+            out[key] = out[f"it{iterations}/{key}"]
+    return out

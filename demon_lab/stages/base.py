@@ -1,0 +1,117 @@
+"""Training stages: one LightningModule per encoder-decoder stage of DeMoN's schedule (spec
+section 5). Each holds the whole chain as a plain submodule; only the stage's own nets train,
+the upstream nets run frozen in eval mode, forward only.
+
+Optimiser per the spec: Adam (beta 0.9/0.999, eps 1e-6), weight decay on kernels, element-wise
+gradient clipping (the Trainer's ``gradient_clip_algorithm="value"``). Learning-rate schedules:
+``released`` — constant for the first third, then quadratic decay to 1e-6 at the end (the
+released code); ``supplementary`` — multistep, -20 % at each step (its Figure 1; the step
+positions are not given, demon_lab puts them at 40, 60 and 80 % of the stage).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+
+import lightning as L
+import torch
+
+from demon_lab import losses
+from demon_lab.nets.chain import DeMoN, downsample_image
+
+LR_SCHEDULES = ("released", "supplementary")
+MULTISTEP_MILESTONES = (0.4, 0.6, 0.8)
+FINAL_LR = 1e-6
+
+
+def learning_rate(step: int, steps: int, base: float, schedule: str) -> float:
+    """The learning rate at ``step`` of a stage of ``steps`` steps."""
+    if schedule == "released":
+        tau = min(max((step - steps / 3) / (2 * steps / 3), 0.0), 1.0)
+        return base + (FINAL_LR - base) * tau * tau
+    if schedule == "supplementary":
+        return base * 0.8 ** sum(step >= m * steps for m in MULTISTEP_MILESTONES)
+    raise ValueError(f"schedule.lr_schedule: expected one of {LR_SCHEDULES}, got {schedule!r}")
+
+
+class StageModule(L.LightningModule):
+    """Common machinery: frozen upstream nets, optimiser, schedule, loss logging.
+
+    Args:
+        chain: the DeMoN chain (upstream nets already trained and loaded).
+        trained: names of the chain's nets this stage trains.
+        weights: a loss preset (:func:`demon_lab.losses.check_weights`).
+        steps, lr, lr_schedule, weight_decay: the optimisation of the stage.
+        oracle: ground-truth inputs during training ('flow' for depth-motion stages,
+            'depth_motion' for flow stages of the iterative net), or None.
+    """
+
+    def __init__(self, chain: DeMoN, trained: Sequence[str], weights: Mapping[str, float], steps: int,
+                 lr: float, lr_schedule: str = "released", weight_decay: float = 0.0,
+                 oracle: str | None = None):
+        super().__init__()
+        self.chain = chain
+        self.trained = list(trained)
+        self.weights = losses.check_weights(weights)
+        self.steps, self.base_lr, self.lr_schedule = int(steps), float(lr), lr_schedule
+        self.weight_decay, self.oracle = float(weight_decay), oracle
+        learning_rate(0, self.steps, self.base_lr, lr_schedule)  # validates the schedule name
+        for name, net in self.nets():
+            net.requires_grad_(name in self.trained)
+        self.last_terms: dict[str, float] = {}
+
+    def nets(self):
+        return [(n, getattr(self.chain, n)) for n in ("flow1", "dm1", "flow2", "dm2", "refine_net")]
+
+    def train(self, mode: bool = True):
+        super().train(mode)
+        for name, net in self.nets():  # frozen nets always run in eval mode
+            if name not in self.trained:
+                net.eval()
+        return self
+
+    def configure_optimizers(self):
+        decay, no_decay = [], []
+        for name in self.trained:
+            for pname, p in getattr(self.chain, name).named_parameters():
+                (no_decay if pname.endswith("bias") else decay).append(p)
+        optimizer = torch.optim.Adam(
+            [{"params": decay, "weight_decay": self.weight_decay}, {"params": no_decay, "weight_decay": 0.0}],
+            lr=self.base_lr, betas=(0.9, 0.999), eps=1e-6)
+        scheduler = torch.optim.lr_scheduler.LambdaLR(
+            optimizer, lambda step: learning_rate(step, self.steps, self.base_lr, self.lr_schedule) / self.base_lr)
+        return {"optimizer": optimizer, "lr_scheduler": {"scheduler": scheduler, "interval": "step"}}
+
+    def inputs(self, batch: Mapping[str, torch.Tensor]):
+        pair = torch.cat([batch["image1"], batch["image2"]], 1)
+        return pair, downsample_image(batch["image2"]), batch["intrinsics"]
+
+    def stage_loss(self, batch: Mapping[str, torch.Tensor], gt: dict) -> tuple[torch.Tensor, dict]:
+        raise NotImplementedError
+
+    def training_step(self, batch: Mapping[str, torch.Tensor], batch_idx: int) -> torch.Tensor:
+        gt = losses.ground_truth(batch)
+        loss, terms = self.stage_loss(batch, gt)
+        if not torch.isfinite(loss):
+            values = ", ".join(f"{k}={v.item():.4g}" for k, v in terms.items())
+            raise FloatingPointError(f"non-finite loss at step {self.global_step}: {values}")
+        self.last_terms = {k: float(v.detach()) for k, v in terms.items()}
+        logged = {f"train/{k}": v.detach() for k, v in terms.items()}
+        logged["train/loss"] = loss.detach()
+        logged["train/lr"] = torch.tensor(self.optimizers().param_groups[0]["lr"])
+        self.log_dict(logged, prog_bar=False, on_step=True, on_epoch=False, batch_size=batch["image1"].shape[0])
+        self.log("loss", loss.detach(), prog_bar=True, on_step=True, on_epoch=False, logger=False,
+                 batch_size=batch["image1"].shape[0])
+        return loss
+
+    def ramp(self, duration_fraction: float) -> float:
+        """ease_out_quad over ``duration_fraction`` of the stage (DeMoN's sig-weight ramps)."""
+        return losses.ease_out_quad(self.global_step, duration_fraction * self.steps)
+
+    def level5(self, duration_fraction: float) -> float:
+        return losses.ease_in_quad_down(self.global_step, duration_fraction * self.steps)
+
+
+def is_finite_number(x: float) -> bool:
+    return isinstance(x, int | float) and math.isfinite(x)

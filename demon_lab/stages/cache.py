@@ -1,0 +1,70 @@
+"""The stage cache (DESIGN.md section 4).
+
+Every stage's result is stored under a key hashing everything that determines it: the stage's own
+config, the model and loss config, the training data config, the seed, the upstream stages' keys
+and :data:`CODE_VERSION`. A finished stage is reused instead of retrained (so an iteration sweep
+trains once and evaluates N times), an interrupted one resumes from its last checkpoint, and a
+file lock keeps concurrent jobs from training the same stage twice.
+
+Layout: ``<cache>/stages/<stage>-<key>/`` with ``last.ckpt`` (Lightning, for resuming),
+``weights.pt`` (the trained nets' state dicts, written atomically when the stage finishes) and
+``stage.json`` (what the key hashes, for humans).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import fcntl
+import hashlib
+import json
+import os
+from collections.abc import Iterator, Mapping
+from pathlib import Path
+from typing import Any
+
+import torch
+
+CODE_VERSION = 1  # bump when training code changes what a stage produces
+
+
+def stage_key(description: Mapping[str, Any]) -> str:
+    blob = json.dumps({"code_version": CODE_VERSION, **description}, sort_keys=True, default=str)
+    return hashlib.sha256(blob.encode()).hexdigest()[:16]
+
+
+class StageDir:
+    def __init__(self, root: Path, name: str, key: str, description: Mapping[str, Any]):
+        self.path = Path(root) / "stages" / f"{name}-{key}"
+        self.name, self.key, self.description = name, key, description
+
+    @property
+    def weights(self) -> Path:
+        return self.path / "weights.pt"
+
+    @property
+    def last_checkpoint(self) -> Path:
+        return self.path / "last.ckpt"
+
+    def done(self) -> bool:
+        return self.weights.is_file()
+
+    @contextlib.contextmanager
+    def lock(self) -> Iterator[None]:
+        """Exclusive lock: a second job needing this stage waits, then finds it done."""
+        self.path.mkdir(parents=True, exist_ok=True)
+        with open(self.path.parent / f"{self.path.name}.lock", "w") as handle:
+            fcntl.flock(handle, fcntl.LOCK_EX)
+            try:
+                yield
+            finally:
+                fcntl.flock(handle, fcntl.LOCK_UN)
+
+    def save(self, state: Mapping[str, Mapping[str, torch.Tensor]]) -> None:
+        self.path.mkdir(parents=True, exist_ok=True)
+        (self.path / "stage.json").write_text(json.dumps(self.description, indent=2, default=str) + "\n")
+        tmp = self.weights.with_suffix(f".tmp{os.getpid()}")
+        torch.save({k: dict(v) for k, v in state.items()}, tmp)
+        os.replace(tmp, self.weights)  # atomic: readers see the old state or the whole new one
+
+    def load(self) -> dict[str, dict[str, torch.Tensor]]:
+        return torch.load(self.weights, map_location="cpu", weights_only=True)

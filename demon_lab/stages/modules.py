@@ -1,0 +1,146 @@
+"""The four kinds of training stage: flow net, depth-motion net, iterative pair, refinement net.
+
+The schedule (``conf/schedule/``) composes them in the released code's order: flow1 and dm1
+(bootstrap), flow2 and dm2 (iterative nets trained one after the other), iterative (flow2 + dm2
+jointly, with DeMoN's queue of previous predictions) and refine.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+
+import torch
+
+from demon_lab import losses
+from demon_lab.nets.chain import (
+    Prediction,
+    depth_motion_net_inputs,
+    flow_net_inputs,
+    ground_truth_inputs,
+)
+from demon_lab.stages.base import StageModule
+
+
+class FlowStage(StageModule):
+    """Trains ``flow1`` (bootstrap) or ``flow2`` (iterative, its inputs from the frozen bootstrap
+    net, or from ground truth with ``oracle='depth_motion'``). Sig weights ramp in over the first
+    third; the level-5 losses fade out over it (spec section 4)."""
+
+    def __init__(self, *args, net: str = "flow1", **kwargs):
+        super().__init__(*args, trained=[net], **kwargs)
+        self.net = net
+
+    def stage_loss(self, batch, gt):
+        pair, image2_2, K = self.inputs(batch)
+        if self.net == "flow1":
+            flow5, flow2 = self.chain.flow1(pair)
+        else:
+            with torch.no_grad():
+                src = (ground_truth_inputs(batch, K) if self.oracle == "depth_motion"
+                       else self.chain.bootstrap(pair, image2_2, K))
+                extra = flow_net_inputs(image2_2, src.inv_depth, src.normals, src.motion, K)
+            flow5, flow2 = self.chain.flow2(pair, extra)
+        return losses.flow_loss(flow5, flow2, gt, self.weights, ramp=self.ramp(1 / 3), level5=self.level5(1 / 3))
+
+
+class DepthMotionStage(StageModule):
+    """Trains ``dm1`` (fed by the frozen flow1) or ``dm2`` (fed by the frozen flow2 on top of the
+    bootstrap net, and the bootstrap motion). With ``oracle='flow'`` it is fed ground-truth flow.
+    The depth-sig weight ramps over twice the stage for dm1 (DeMoN's 2M-step ramp in a 1M-step
+    stage) and over the stage for dm2."""
+
+    def __init__(self, *args, net: str = "dm1", **kwargs):
+        super().__init__(*args, trained=[net], **kwargs)
+        self.net = net
+
+    def stage_loss(self, batch, gt):
+        pair, image2_2, K = self.inputs(batch)
+        with torch.no_grad():
+            gt2 = ground_truth_inputs(batch, K) if self.oracle == "flow" else None
+            prev_motion = None
+            if self.net == "dm1":
+                flow, conf = _flow_and_conf(self.chain.flow1(pair)[1])
+            else:
+                prev = self.chain.bootstrap(pair, image2_2, K)
+                extra = flow_net_inputs(image2_2, prev.inv_depth, prev.normals, prev.motion, K)
+                flow, conf = _flow_and_conf(self.chain.flow2(pair, extra)[1])
+                prev_motion = prev.motion
+            if gt2 is not None:
+                flow, conf = gt2.flow, torch.isfinite(gt2.flow).to(gt2.flow.dtype)
+            extra = depth_motion_net_inputs(image2_2, flow, conf, prev_motion, K, self.chain.variant)
+        dm = getattr(self.chain, self.net)(pair, extra)
+        ramp = self.ramp(2.0 if self.net == "dm1" else 1.0)
+        return losses.depth_motion_loss(dm.inv_depth, dm.normals, dm.motion, gt, self.weights, ramp=ramp)
+
+
+def _flow_and_conf(flowconf: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    return flowconf[:, :2], flowconf[:, 2:]
+
+
+class IterativeStage(StageModule):
+    """Trains flow2 and dm2 jointly (spec section 5, "simulated iterations").
+
+    Each step takes the batch's ``B`` new samples (their previous prediction from the frozen
+    bootstrap net) plus up to ``queue_size`` samples from a FIFO queue (their previous prediction
+    is their own last dm2 output); after the step the first ``queue_size`` of these, with their
+    new dm2 outputs, are queued. So every sample passes the iterative net several times without
+    back-propagation between passes. DeMoN: 8 new + 24 queued = 32, i.e. 4 passes per sample.
+    """
+
+    def __init__(self, *args, queue_size: int = 24, **kwargs):
+        super().__init__(*args, trained=["flow2", "dm2"], **kwargs)
+        self.queue_size = int(queue_size)
+        self.queue: list[tuple[dict, Prediction]] = []
+
+    def stage_loss(self, batch, gt):
+        pair, image2_2, K = self.inputs(batch)
+        with torch.no_grad():
+            prev = self.chain.bootstrap(pair, image2_2, K)
+        samples = [({k: v[i] for k, v in batch.items() if isinstance(v, torch.Tensor)},
+                    _index(prev, i)) for i in range(pair.shape[0])]
+        combined = samples + self.queue[: self.queue_size]
+        self.queue = self.queue[self.queue_size:]
+        merged = {k: torch.stack([s[k] for s, _ in combined]) for k in combined[0][0]}
+        prev_all = _stack([p for _, p in combined])
+        gt_all = losses.ground_truth(merged)
+        pair, image2_2, K = self.inputs(merged)
+        out = self.chain.iterate(pair, image2_2, K, prev_all)
+        flow_total, flow_terms = losses.flow_loss(torch.cat([out.flow5, out.conf5], 1),
+                                                  torch.cat([out.flow, out.conf], 1), gt_all,
+                                                  self.weights, ramp=1.0, level5=0.0)
+        dm_total, dm_terms = losses.depth_motion_loss(out.inv_depth, out.normals, out.motion, gt_all,
+                                                      self.weights, ramp=1.0)
+        detached = Prediction(*(t.detach() for t in (out.flow, out.conf, out.flow5, out.conf5,
+                                                       out.inv_depth, out.normals, out.motion)))
+        self.queue += [(combined[i][0], _index(detached, i)) for i in range(min(self.queue_size, len(combined)))]
+        return flow_total + dm_total, {**flow_terms, **dm_terms}
+
+
+def _index(p: Prediction, i: int) -> Prediction:
+    return Prediction(*(getattr(p, f)[i] for f in Prediction.__dataclass_fields__))
+
+
+def _stack(ps: list[Prediction]) -> Prediction:
+    return Prediction(*(torch.stack([getattr(p, f) for p in ps]) for f in Prediction.__dataclass_fields__))
+
+
+class RefineStage(StageModule):
+    """Trains the refinement net on the depth of the frozen chain after ``iterations`` iterative
+    passes; its depth-sig weight ramps in over the stage."""
+
+    def __init__(self, *args, iterations: int = 3, **kwargs):
+        super().__init__(*args, trained=["refine_net"], **kwargs)
+        self.iterations = int(iterations)
+
+    def stage_loss(self, batch: Mapping[str, torch.Tensor], gt):
+        pair, image2_2, K = self.inputs(batch)
+        with torch.no_grad():
+            p = self.chain.bootstrap(pair, image2_2, K)
+            for _ in range(self.iterations):
+                p = self.chain.iterate(pair, image2_2, K, p)
+        refined = self.chain.refine(batch["image1"], p.inv_depth)
+        return losses.refine_loss(refined, gt, self.weights, ramp=self.ramp(1.0))
+
+
+STAGE_KINDS = {"flow": FlowStage, "depth_motion": DepthMotionStage, "iterative": IterativeStage,
+               "refine": RefineStage}

@@ -1,0 +1,140 @@
+"""Train the schedule's stages that the stage cache lacks, in order, and load them all.
+
+Used by the main command (:mod:`demon_lab.app`); every trained stage is tracked as a child run of
+the job's MLflow run, with its loss curves.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from typing import Any
+
+import lightning as L
+import torch
+from omegaconf import DictConfig, OmegaConf
+
+from demon_lab.nets.chain import DeMoN
+from demon_lab.stages.cache import StageDir, stage_key
+from demon_lab.stages.modules import STAGE_KINDS
+
+STAGE_ORDER = ("flow1", "dm1", "flow2", "dm2", "iterative", "refine")
+TRAINED_NETS = {"flow1": ["flow1"], "dm1": ["dm1"], "flow2": ["flow2"], "dm2": ["dm2"],
+                "iterative": ["flow2", "dm2"], "refine": ["refine_net"]}
+
+
+def scheduled_stages(cfg: DictConfig) -> list[str]:
+    names = list(cfg.schedule.stages)
+    return names[: names.index(cfg.schedule.until) + 1]
+
+
+def describe_stage(cfg: DictConfig, name: str, upstream: dict[str, str]) -> dict[str, Any]:
+    """Everything that determines a stage's result (what its cache key hashes)."""
+    plain = lambda node: OmegaConf.to_container(node, resolve=True)  # noqa: E731
+    return {
+        "stage": name,
+        "stage_config": plain(cfg.schedule.stages[name]),
+        "optimisation": {k: cfg.schedule[k] for k in ("lr_schedule", "weight_decay", "grad_clip")},
+        "batch_size": cfg.data.batch_size,
+        "model": {**plain(cfg.model), "size": list(cfg.data.size)},
+        "loss": plain(cfg.loss),
+        "train_data": plain(cfg.data.train),
+        "seed": cfg.seed,
+        "upstream": dict(upstream),
+    }
+
+
+def stage_dirs(cfg: DictConfig) -> list[StageDir]:
+    """The cache entries of the scheduled stages (keys chained through the upstream keys)."""
+    upstream: dict[str, str] = {}
+    dirs = []
+    for name in scheduled_stages(cfg):
+        description = describe_stage(cfg, name, upstream)
+        key = stage_key(description)
+        dirs.append(StageDir(cfg.cache_dir, name, key, description))
+        upstream[name] = key
+    return dirs
+
+
+def build_chain(cfg: DictConfig) -> DeMoN:
+    return DeMoN(cfg.model.variant, float(cfg.model.width), tuple(cfg.data.size))
+
+
+def build_datamodule(cfg: DictConfig, batch_size: int, samples: int):
+    from demon_lab.config import instantiate
+    from demon_lab.data.datamodule import DemonDataModule
+
+    train = [{"weight": e.weight, "dataset": instantiate(e.dataset)} for e in cfg.data.train]
+    return DemonDataModule(train=train, batch_size=batch_size, num_workers=cfg.data.num_workers,
+                           samples_per_epoch=samples, seed=cfg.seed)
+
+
+def train_stage(cfg: DictConfig, chain: DeMoN, stage: StageDir, logger: L.pytorch.loggers.Logger | None,
+                progress: bool = True) -> dict[str, float]:
+    """Train one stage into ``stage`` (resuming from its last checkpoint); returns figures."""
+    spec = cfg.schedule.stages[stage.name]
+    kind = spec.kind
+    kwargs = dict(steps=int(spec.steps), lr=float(spec.lr), lr_schedule=cfg.schedule.lr_schedule,
+                  weight_decay=float(cfg.schedule.weight_decay))
+    if kind in ("flow", "depth_motion"):
+        kwargs.update(net=spec.net, oracle=spec.get("oracle"))
+    elif kind == "iterative":
+        kwargs.update(queue_size=int(spec.queue_size))
+    else:
+        kwargs.update(iterations=int(spec.iterations))
+    module = STAGE_KINDS[kind](chain, weights=OmegaConf.to_container(cfg.loss, resolve=True), **kwargs)
+    batch = int(cfg.data.batch_size)
+    datamodule = build_datamodule(cfg, batch, int(spec.steps) * batch)
+    checkpoint = L.pytorch.callbacks.ModelCheckpoint(
+        dirpath=stage.path, filename="step{step}", save_last=True, save_top_k=0,
+        every_n_train_steps=max(1, int(cfg.scale.get("checkpoint_every", 50))), auto_insert_metric_name=False)
+    trainer = L.Trainer(
+        max_steps=int(spec.steps), accelerator=cfg.scale.get("accelerator", "auto"), devices=1,
+        logger=logger if logger is not None else False, callbacks=[checkpoint],
+        log_every_n_steps=int(cfg.tracking.log_every_n_steps), gradient_clip_val=float(cfg.schedule.grad_clip),
+        gradient_clip_algorithm="value", enable_progress_bar=progress, enable_model_summary=False,
+        num_sanity_val_steps=0, limit_val_batches=0, deterministic="warn", benchmark=False)
+    resume = stage.last_checkpoint if stage.last_checkpoint.is_file() else None
+    start = time.perf_counter()
+    trainer.fit(module, train_dataloaders=datamodule.train_dataloader(), ckpt_path=resume)
+    seconds = time.perf_counter() - start
+    stage.save({net: getattr(chain, net).state_dict() for net in TRAINED_NETS[stage.name]})
+    steps_done = int(spec.steps) - (0 if resume is None else _checkpoint_step(resume))
+    return {"seconds": seconds, "steps_per_second": steps_done / max(seconds, 1e-9),
+            **{f"final/{k}": v for k, v in module.last_terms.items()}}
+
+
+def _checkpoint_step(path) -> int:
+    return int(torch.load(path, map_location="cpu", weights_only=False).get("global_step", 0))
+
+
+def load_stage(chain: DeMoN, stage: StageDir) -> None:
+    state = stage.load()
+    for net, weights in state.items():
+        getattr(chain, net).load_state_dict(weights)
+
+
+def prepare_chain(cfg: DictConfig, on_stage: Callable[[StageDir, str], L.pytorch.loggers.Logger | None]
+                  | None = None, progress: bool = True) -> tuple[DeMoN, list[StageDir], dict[str, dict]]:
+    """Build the chain, train the stages the cache lacks and load every stage in order.
+
+    ``on_stage(stage, status)`` is called with status 'cached' or 'train' and may return a logger
+    for the stage's training curves. Returns the chain, the stage entries and per-stage figures.
+    """
+    L.seed_everything(int(cfg.seed), workers=True, verbose=False)
+    chain = build_chain(cfg)
+    figures: dict[str, dict] = {}
+    for stage in stage_dirs(cfg):
+        with stage.lock():
+            if stage.done():
+                if on_stage:
+                    on_stage(stage, "cached")
+                load_stage(chain, stage)
+                figures[stage.name] = {"cached": 1.0}
+                continue
+            logger = on_stage(stage, "train") if on_stage else None
+            print(f"[demon_lab] training stage {stage.name} ({cfg.schedule.stages[stage.name].steps} steps) "
+                  f"-> {stage.path}", flush=True)
+            figures[stage.name] = train_stage(cfg, chain, stage, logger, progress)
+    chain.eval()
+    return chain, stage_dirs(cfg), figures

@@ -1,0 +1,76 @@
+"""Configuration checks before any work: a wrong type or an out-of-range value is one line naming
+the key and what is allowed (raised as :class:`demon_lab.config.ConfigError`)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from omegaconf import DictConfig, OmegaConf
+
+from demon_lab.config import ConfigError
+from demon_lab.losses import check_weights
+from demon_lab.nets.chain import ORACLES
+from demon_lab.stages.base import LR_SCHEDULES
+
+STAGE_KINDS = ("flow", "depth_motion", "iterative", "refine")
+STAGE_ORACLES = {"flow": (None, "depth_motion"), "depth_motion": (None, "flow"), "iterative": (None,), "refine": (None,)}
+
+
+def _int(key: str, value: Any, minimum: int | None = None) -> int:
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise ConfigError(f"{key}: expected an integer{'' if minimum is None else f' >= {minimum}'}, got {value!r}")
+    if minimum is not None and value < minimum:
+        raise ConfigError(f"{key}: expected an integer >= {minimum}, got {value}")
+    return value
+
+
+def _positive(key: str, value: Any, allow_zero: bool = False) -> float:
+    if isinstance(value, bool) or not isinstance(value, int | float) or not (value >= 0 if allow_zero else value > 0):
+        raise ConfigError(f"{key}: expected a {'non-negative' if allow_zero else 'positive'} number, got {value!r}")
+    return float(value)
+
+
+def _choice(key: str, value: Any, allowed: tuple) -> None:
+    if value not in allowed:
+        shown = ", ".join("null" if a is None else str(a) for a in allowed)
+        raise ConfigError(f"{key}: expected one of {shown}, got {value!r}")
+
+
+def validate(cfg: DictConfig) -> None:
+    try:
+        OmegaConf.to_container(cfg, resolve=True, throw_on_missing=True)
+    except Exception as e:
+        raise ConfigError(str(e).splitlines()[0]) from None
+    _int("iterations", cfg.iterations, 0)
+    _int("seed", cfg.seed, 0)
+    _choice("oracle", cfg.oracle, ORACLES)
+    _choice("force", cfg.force, (True, False))
+    _choice("model.variant", cfg.model.variant, ("v1", "v2"))
+    _positive("model.width", cfg.model.width)
+    size = list(cfg.data.size)
+    if len(size) != 2 or any(isinstance(s, bool) or not isinstance(s, int) or s < 32 or s % 32 for s in size):
+        raise ConfigError(f"data.size: expected [H, W] with sides positive multiples of 32, got {size}")
+    _int("data.batch_size", cfg.data.batch_size, 1)
+    _int("data.num_workers", cfg.data.num_workers, 0)
+    if not cfg.data.train:
+        raise ConfigError("data.train: expected at least one training source")
+    _choice("schedule.lr_schedule", cfg.schedule.lr_schedule, LR_SCHEDULES)
+    _positive("schedule.weight_decay", cfg.schedule.weight_decay, allow_zero=True)
+    _positive("schedule.grad_clip", cfg.schedule.grad_clip)
+    stages = list(cfg.schedule.stages)
+    _choice("schedule.until", cfg.schedule.until, tuple(stages))
+    for name in stages:
+        spec = cfg.schedule.stages[name]
+        _choice(f"schedule.stages.{name}.kind", spec.kind, STAGE_KINDS)
+        _int(f"schedule.stages.{name}.steps", spec.steps, 1)
+        _positive(f"schedule.stages.{name}.lr", spec.lr)
+        _choice(f"schedule.stages.{name}.oracle", spec.get("oracle"), STAGE_ORACLES[spec.kind])
+    try:
+        check_weights(OmegaConf.to_container(cfg.loss, resolve=True))
+    except ValueError as e:
+        raise ConfigError(str(e)) from None
+    if cfg.eval.max_samples is not None:
+        _int("eval.max_samples", cfg.eval.max_samples, 1)
+    _int("eval.batch_size", cfg.eval.batch_size, 1)
+    if not isinstance(cfg.tracking.uri, str) or not cfg.tracking.uri:
+        raise ConfigError(f"tracking.uri: expected a URI such as sqlite:///mlflow.db, got {cfg.tracking.uri!r}")
