@@ -135,8 +135,9 @@ def _train_and_evaluate(cfg: DictConfig, tracker, run_id: str) -> dict[str, Any]
     with tempfile.TemporaryDirectory() as tmp:
         for entry in cfg.data.test:
             dataset = instantiate(entry)
+            keep = max(int(cfg.eval.visualize), int(cfg.eval.point_clouds))
             rows, kept = evaluate_dataset(chain, dataset, int(cfg.iterations), cfg.oracle, int(cfg.eval.batch_size),
-                                          cfg.eval.max_samples, keep=max(int(cfg.eval.visualize), int(cfg.eval.point_clouds)))
+                                          cfg.eval.max_samples, keep=keep)
             summary[dataset.name] = summarize(rows, int(cfg.iterations))
             all_rows += [{"dataset": dataset.name, **r} for r in rows]
             _save_visuals(Path(tmp), dataset.name, kept, int(cfg.eval.visualize), int(cfg.eval.point_clouds))

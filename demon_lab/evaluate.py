@@ -41,10 +41,12 @@ def evaluate_dataset(chain: DeMoN, dataset, iterations: int, oracle: str | None 
                 pred = {"inv_depth": p.inv_depth[i, 0].cpu(), "motion": p.motion[i].cpu(), "flow": p.flow[i].cpu()}
                 rows.append({"id": batch["id"][i], "it": k, **metrics.evaluate_sample(pred, truth)})
             last = out.passes[-1]
-            refined = {"inv_depth": out.refined[i, 0].cpu(), "motion": last.motion[i].cpu(), "flow": last.flow[i].cpu()}
+            refined = {"inv_depth": out.refined[i, 0].cpu(), "motion": last.motion[i].cpu(),
+                       "flow": last.flow[i].cpu()}
             rows.append({"id": batch["id"][i], "it": "refined", **metrics.evaluate_sample(refined, truth)})
             if len(kept) < keep:
-                kept.append({"id": batch["id"][i], "image1": batch["image1"][i], "gt_inv_depth": batch["inv_depth"][i, 0],
+                kept.append({"id": batch["id"][i], "image1": batch["image1"][i],
+                             "gt_inv_depth": batch["inv_depth"][i, 0],
                              "inv_depth": out.refined[i, 0].cpu(), "flow": last.flow[i].cpu(),
                              "normals": last.normals[i].cpu(), "intrinsics": batch["intrinsics"][i]})
     return rows, kept

@@ -127,9 +127,8 @@ class Tracker:
         raise TrackingError(f"tracking.uri {self.uri!r}: cannot use the tracking store ({message})")
 
     def find_finished(self, key: str) -> str | None:
-        runs = self.client.search_runs([self.experiment_id],
-                                       filter_string=f"tags.`{TAG}run_key` = '{key}' and attributes.status = 'FINISHED'",
-                                       max_results=1)
+        query = f"tags.`{TAG}run_key` = '{key}' and attributes.status = 'FINISHED'"
+        runs = self.client.search_runs([self.experiment_id], filter_string=query, max_results=1)
         return runs[0].info.run_id if runs else None
 
     def start(self, name: str, tags: Mapping[str, str], parent_id: str | None = None) -> str:

@@ -35,7 +35,7 @@ def describe_stage(cfg: DictConfig, name: str, upstream: dict[str, str]) -> dict
         "stage": name,
         "stage_config": plain(cfg.schedule.stages[name]),
         "optimisation": {k: cfg.schedule[k] for k in ("lr_schedule", "weight_decay", "grad_clip")},
-        "batch_size": cfg.data.batch_size,
+        "batch_size": cfg.schedule.stages[name].get("batch_size") or cfg.data.batch_size,
         "model": {**plain(cfg.model), "size": list(cfg.data.size)},
         "loss": plain(cfg.loss),
         "train_data": plain(cfg.data.train),
@@ -83,7 +83,7 @@ def train_stage(cfg: DictConfig, chain: DeMoN, stage: StageDir, logger: L.pytorc
     else:
         kwargs.update(iterations=int(spec.iterations))
     module = STAGE_KINDS[kind](chain, weights=OmegaConf.to_container(cfg.loss, resolve=True), **kwargs)
-    batch = int(cfg.data.batch_size)
+    batch = int(spec.get("batch_size") or cfg.data.batch_size)
     datamodule = build_datamodule(cfg, batch, int(spec.steps) * batch)
     checkpoint = L.pytorch.callbacks.ModelCheckpoint(
         dirpath=stage.path, filename="step{step}", save_last=True, save_top_k=0,

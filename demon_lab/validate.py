@@ -13,7 +13,8 @@ from demon_lab.nets.chain import ORACLES
 from demon_lab.stages.base import LR_SCHEDULES
 
 STAGE_KINDS = ("flow", "depth_motion", "iterative", "refine")
-STAGE_ORACLES = {"flow": (None, "depth_motion"), "depth_motion": (None, "flow"), "iterative": (None,), "refine": (None,)}
+STAGE_ORACLES = {"flow": (None, "depth_motion"), "depth_motion": (None, "flow"), "iterative": (None,),
+                 "refine": (None,)}
 
 
 def _int(key: str, value: Any, minimum: int | None = None) -> int:

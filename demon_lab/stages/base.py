@@ -57,9 +57,16 @@ class StageModule(L.LightningModule):
         self.steps, self.base_lr, self.lr_schedule = int(steps), float(lr), lr_schedule
         self.weight_decay, self.oracle = float(weight_decay), oracle
         learning_rate(0, self.steps, self.base_lr, lr_schedule)  # validates the schedule name
+        self.freeze_upstream()
+        self.last_terms: dict[str, float] = {}
+
+    def freeze_upstream(self) -> None:
+        """Only the stage's own nets get gradients (stages share one chain: call before training)."""
         for name, net in self.nets():
             net.requires_grad_(name in self.trained)
-        self.last_terms: dict[str, float] = {}
+
+    def on_fit_start(self) -> None:
+        self.freeze_upstream()
 
     def nets(self):
         return [(n, getattr(self.chain, n)) for n in ("flow1", "dm1", "flow2", "dm2", "refine_net")]

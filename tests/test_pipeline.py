@@ -1,0 +1,208 @@
+"""The main command end to end at the smoke scale, into a temporary MLflow store."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+from hydra import compose, initialize_config_dir
+
+from demon_lab.__main__ import CONF, check
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def smoke_overrides(tmp: Path, *extra: str) -> list[str]:
+    return ["scale=smoke", f"tracking.uri=sqlite:///{tmp}/mlflow.db", f"tracking.artifact_dir={tmp}/artifacts",
+            f"cache_dir={tmp}/cache", *extra]
+
+
+def compose_config(overrides: list[str]):
+    with initialize_config_dir(CONF, version_base="1.3"):
+        return compose("config", overrides=overrides)
+
+
+def client(tmp: Path):
+    from mlflow.tracking import MlflowClient
+
+    return MlflowClient(tracking_uri=f"sqlite:///{tmp}/mlflow.db")
+
+
+def cli(*args: str, cwd: Path) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "demon_lab", *args], cwd=cwd, capture_output=True, text=True,
+                          timeout=600)
+
+
+@pytest.fixture(scope="module")
+def smoke_run(tmp_path_factory):
+    from demon_lab.app import run
+
+    tmp = tmp_path_factory.mktemp("smoke")
+    result = run(compose_config(smoke_overrides(tmp)))
+    return tmp, result
+
+
+def test_smoke_pipeline_records_a_finished_run(smoke_run):
+    tmp, result = smoke_run
+    assert result["status"] == "finished"
+    c = client(tmp)
+    run = c.get_run(result["run_id"])
+    assert run.info.status == "FINISHED"
+    tags = run.data.tags
+    assert tags["demon_lab.run_key"] == result["run_key"] and tags["demon_lab.scale"] == "smoke"
+    assert tags["demon_lab.seed"] == "0" and "demon_lab.git_commit" in tags and "demon_lab.torch" in tags
+    assert run.data.params["model.width"] == "0.0625" and run.data.params["iterations"] == "3"
+    m = run.data.metrics
+    for name in ("synthetic_scenes11", "synthetic_sun3d", "synthetic_mvs", "middlebury"):
+        for metric in ("l1_inv", "sc_inv", "l1_rel", "rot_deg", "tran_deg"):
+            assert f"test/{name}/{metric}" in m
+            assert f"test/{name}/refined/{metric}" in m
+            for k in range(4):
+                assert f"test/{name}/it{k}/{metric}" in m
+        assert f"test/{name}/it3/delta_1.25_2" in m
+    # the summary metric is the refined depth and the last iteration's motion
+    summary = result["summary"]["synthetic_sun3d"]
+    assert m["test/synthetic_sun3d/l1_rel"] == pytest.approx(summary["refined/l1_rel"])
+    assert m["test/synthetic_sun3d/rot_deg"] == pytest.approx(summary["it3/rot_deg"])
+    artifacts = {a.path for a in c.list_artifacts(result["run_id"])}
+    assert {"config.yaml", "per_sample_metrics.csv", "stage_keys.json", "results.txt", "images",
+            "point_clouds"} <= artifacts
+    assert any(a.path.endswith(".ply") for a in c.list_artifacts(result["run_id"], "point_clouds"))
+    assert any(a.path.endswith(".png") for a in c.list_artifacts(result["run_id"], "images"))
+    config_text = Path(c.download_artifacts(result["run_id"], "config.yaml")).read_text()
+    assert "width: 0.0625" in config_text and "${" not in config_text  # resolved
+
+
+def test_stage_runs_record_their_loss_curves(smoke_run):
+    tmp, result = smoke_run
+    c = client(tmp)
+    children = c.search_runs([c.get_run(result["run_id"]).info.experiment_id],
+                             filter_string=f"tags.`mlflow.parentRunId` = '{result['run_id']}'")
+    stages = {r.data.tags["demon_lab.stage"]: r for r in children}
+    assert set(stages) == {"flow1", "dm1", "flow2", "dm2", "iterative", "refine"}
+    for name, r in stages.items():
+        assert r.info.status == "FINISHED"
+        history = c.get_metric_history(r.info.run_id, "train/loss")
+        assert len(history) >= 1 and all(h.value == h.value for h in history), name
+    assert "train/flow2_sig" in stages["flow1"].data.metrics and "train/rotation" in stages["dm1"].data.metrics
+
+
+def test_per_sample_metrics_table_matches_the_logged_means(smoke_run):
+    import csv
+    import io
+
+    tmp, result = smoke_run
+    c = client(tmp)
+    rows = list(csv.DictReader(io.StringIO(Path(c.download_artifacts(result["run_id"], "per_sample_metrics.csv"))
+                                           .read_text())))
+    mine = [float(r["l1_rel"]) for r in rows if r["dataset"] == "synthetic_mvs" and r["it"] == "2"]
+    assert len(mine) == 2
+    logged = c.get_run(result["run_id"]).data.metrics["test/synthetic_mvs/it2/l1_rel"]
+    assert logged == pytest.approx(sum(mine) / len(mine))
+
+
+def test_second_identical_invocation_is_skipped_and_stages_are_cached(smoke_run):
+    from demon_lab.app import run
+
+    tmp, result = smoke_run
+    again = run(compose_config(smoke_overrides(tmp)))
+    assert again == {"status": "skipped", "run_id": result["run_id"], "run_key": result["run_key"]}
+    # another evaluation-time setting is a new run but trains nothing: all stages come from the cache
+    other = run(compose_config(smoke_overrides(tmp, "iterations=1")))
+    assert other["status"] == "finished" and other["run_key"] != result["run_key"]
+    assert all(f == {"cached": 1.0} for f in other["figures"].values())
+    forced = run(compose_config(smoke_overrides(tmp, "force=true")))
+    assert forced["status"] == "finished" and forced["run_id"] != result["run_id"]
+
+
+def test_a_job_that_raises_leaves_its_run_failed(tmp_path):
+    from demon_lab.app import run
+    from demon_lab.data.sample import DataError
+
+    cfg = compose_config(smoke_overrides(tmp_path, "data.real_pair=/does/not/exist"))
+    with pytest.raises(DataError, match="/does/not/exist"):
+        run(cfg)
+    c = client(tmp_path)
+    runs = c.search_runs([c.get_experiment_by_name("default").experiment_id],
+                         filter_string="tags.`demon_lab.scale` = 'smoke'")
+    job = [r for r in runs if "mlflow.parentRunId" not in r.data.tags]
+    assert len(job) == 1 and job[0].info.status == "FAILED"
+    assert "/does/not/exist" in job[0].data.tags["demon_lab.error"]
+    assert all(r.info.status != "RUNNING" for r in runs)
+
+
+@pytest.mark.parametrize("args, message", [
+    (["iterations=-1"], "iterations: expected an integer >= 0"),
+    (["model.width=0"], "model.width: expected a positive number"),
+    (["data.size=[100,128]"], "data.size: expected [H, W] with sides positive multiples of 32"),
+    (["model.variant=v3"], "model.variant: expected one of v1, v2"),
+    (["oracle=perfect"], "oracle: expected one of null, flow, depth_motion"),
+    (["no_such_key=1"], "Could not override 'no_such_key'"),
+    (["iterations=three"], "iterations: expected an integer"),
+    (["loss=no_such_preset"], "Could not find 'loss/no_such_preset'"),
+    (["schedule.stages.dm1.oracle=depth_motion"], "schedule.stages.dm1.oracle: expected one of null, flow"),
+    (["-m", "iterations=0,1,-2"], "iterations: expected an integer >= 0, got -2"),
+])
+def test_bad_configuration_is_one_line_before_any_work(args, message, tmp_path):
+    result = cli(*smoke_overrides(tmp_path), *args, cwd=tmp_path)
+    assert result.returncode == 2, result.stderr
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and message in lines[0], result.stderr
+    assert not (tmp_path / "mlflow.db").exists()  # nothing was recorded
+
+
+@pytest.mark.parametrize("overrides", [
+    ["scale=cpu"], ["scale=paper"], ["scale=smoke", "model.variant=v2"], ["loss=supplementary"],
+    ["loss=no_sig"], ["loss=no_normals"], ["loss=no_confidence"], ["loss=depth_sig_1000"],
+    ["schedule=supplementary"], ["data=synthetic_scenes11"], ["data=middlebury"],
+    ["-m", "iterations=0,1,2,3,4,5"], ["-m", "loss=supplementary,released_code,no_sig"],
+])
+def test_documented_configurations_compose_and_validate(overrides):
+    assert check(overrides) is None
+    experiments = sorted((ROOT / "conf" / "experiment").glob("*.yaml"))
+    for path in experiments:
+        assert check([f"+experiment={path.stem}", *overrides]) is None, path.stem
+
+
+def test_killed_training_stage_resumes_from_its_checkpoint(tmp_path):
+    """A real job is killed (SIGKILL) mid-stage; the same command resumes from the stage's last
+    checkpoint instead of starting over."""
+    args = smoke_overrides(tmp_path, "scale.steps.flow1=400", "schedule.until=flow1", "scale.checkpoint_every=5",
+                           "eval.max_samples=1")
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    proc = subprocess.Popen([sys.executable, "-m", "demon_lab", *args], cwd=tmp_path, env=env,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    checkpoints = []
+    deadline = time.time() + 300
+    while time.time() < deadline and proc.poll() is None:
+        checkpoints = list((tmp_path / "cache" / "stages").glob("flow1-*/last.ckpt"))
+        if checkpoints and any((p.parent / "weights.pt").exists() for p in checkpoints):
+            break
+        if checkpoints:
+            time.sleep(1.0)  # let a few more steps pass
+            break
+        time.sleep(0.2)
+    assert checkpoints, "no checkpoint was written before the deadline"
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    import torch
+
+    step_at_kill = torch.load(checkpoints[0], map_location="cpu", weights_only=False)["global_step"]
+    assert 0 < step_at_kill < 400
+    from demon_lab.app import run
+
+    result = run(compose_config(args))
+    assert result["status"] == "finished"
+    seconds_per_step = result["figures"]["flow1"]["seconds"]
+    assert (checkpoints[0].parent / "weights.pt").is_file()
+    # the resumed stage ran only the remaining steps
+    resumed_steps = result["figures"]["flow1"]["steps_per_second"] * seconds_per_step
+    assert resumed_steps == pytest.approx(400 - step_at_kill, abs=1)
+    c = client(tmp_path)
+    statuses = [r.info.status for r in c.search_runs([c.get_experiment_by_name("default").experiment_id])]
+    assert "FINISHED" in statuses
