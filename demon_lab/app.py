@@ -87,7 +87,9 @@ def _parent_run(cfg: DictConfig, tracker) -> str | None:
     """The multirun's parent run id (created once per sweep by the Hydra callback), if any."""
     import os
 
-    return os.environ.get("DEMON_LAB_PARENT_RUN") or None
+    from demon_lab.callbacks import PARENT_ENV
+
+    return os.environ.get(PARENT_ENV) or None
 
 
 def _train_and_evaluate(cfg: DictConfig, tracker, run_id: str) -> dict[str, Any]:

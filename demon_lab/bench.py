@@ -6,6 +6,8 @@ run (a geometry op against its OpenCV counterpart). Sections:
 
 * ``geometry``: the geometry layers at 256x192, batch 8, float32, on the CPU.
 * ``data``: synthetic pairs per second, rendered (one core, worker processes) and from the cache.
+* ``train``: training steps/s per stage at the cpu scale, FLOP/s against matmul, channels-last and
+  torch.compile, inference pairs/s of the full chain.
 """
 
 from __future__ import annotations
@@ -203,7 +205,108 @@ def bench_data(repeats: int) -> str:
     return "\n".join(lines)
 
 
-SECTIONS: dict[str, Callable[[int], str]] = {"geometry": bench_geometry, "data": bench_data}
+def _matmul_flops(repeats: int) -> float:
+    a, b = torch.rand(2048, 2048), torch.rand(2048, 2048)
+    return 2 * 2048**3 / measure(lambda: a @ b, max(3, repeats // 2))
+
+
+def bench_train(repeats: int) -> str:
+    """Training steps per second per stage at the cpu scale, achieved FLOP/s against this
+    machine's float32 matmul FLOP/s, channels-last and torch.compile, inference pairs/s."""
+    import warnings
+
+    from torch.utils.data import default_collate
+    from torch.utils.flop_counter import FlopCounterMode
+
+    from demon_lab import losses
+    from demon_lab.data import synthetic
+    from demon_lab.data.sample import normalize_translation
+    from demon_lab.nets.chain import DeMoN
+    from demon_lab.stages.modules import DepthMotionStage, FlowStage, IterativeStage, RefineStage
+
+    warnings.filterwarnings("ignore")
+    size, width, batch_size = (96, 128), 0.25, 8  # the cpu scale (conf/scale/cpu.yaml)
+    weights = {"flow": 500, "flow_conf": 25, "flow_sig": 250, "flow_conf_sig": 25, "depth": 150, "depth_sig": 375,
+               "normals": 25, "rotation": 160, "translation": 45, "refine_depth": 150, "refine_depth_sig": 187.5,
+               "refine_normals": 25}  # conf/loss/released_code.yaml
+    samples = []
+    for i in range(batch_size):
+        s = normalize_translation(synthetic.render_pair("synthetic_sun3d", 10_000 + i, size))
+        s.pop("meta", None)
+        samples.append(s)
+    batch = default_collate(samples)
+    batch.pop("id")
+    peak = _matmul_flops(repeats)
+
+    def stage_rate(make, channels_last: bool = False, compile_step: bool = False):
+        chain = DeMoN("v1", width, size)
+        if channels_last:
+            chain = chain.to(memory_format=torch.channels_last)
+        module = make(chain)
+        module.train()
+        opt = torch.optim.Adam([p for p in module.parameters() if p.requires_grad], lr=1e-4, eps=1e-6)
+        b = {k: v.contiguous(memory_format=torch.channels_last) if channels_last and v.dim() == 4 else v
+             for k, v in batch.items()}
+
+        def step():
+            loss, _ = module.stage_loss(b, losses.ground_truth(b))
+            opt.zero_grad()
+            loss.backward()
+            opt.step()
+
+        fn = torch.compile(step) if compile_step else step
+        fn()
+        fn()
+        with FlopCounterMode(display=False) as counter:
+            step()
+        flops = counter.get_total_flops()
+        seconds = measure(fn, max(3, repeats // 4), min_time=0.5)
+        return 1 / seconds, flops / seconds
+
+    kinds = [
+        ("flow1", lambda c: FlowStage(c, weights=weights, steps=1000, lr=1e-4, net="flow1")),
+        ("dm1", lambda c: DepthMotionStage(c, weights=weights, steps=1000, lr=1e-4, net="dm1")),
+        ("flow2", lambda c: FlowStage(c, weights=weights, steps=1000, lr=1e-4, net="flow2")),
+        ("dm2", lambda c: DepthMotionStage(c, weights=weights, steps=1000, lr=1e-4, net="dm2")),
+        ("iterative", lambda c: IterativeStage(c, weights=weights, steps=1000, lr=1e-4, queue_size=8)),
+        ("refine", lambda c: RefineStage(c, weights=weights, steps=1000, lr=1e-4)),
+    ]
+    rows = []
+    for name, make in kinds:
+        rate, flops = stage_rate(make)
+        rows.append((name, "default", f"{rate:.2f}", f"{flops / 1e9:.1f}", f"{flops / peak:.1%}"))
+    for label, kw in (("channels-last", {"channels_last": True}), ("torch.compile", {"compile_step": True})):
+        try:
+            rate, flops = stage_rate(kinds[0][1], **kw)
+            rows.append(("flow1", label, f"{rate:.2f}", f"{flops / 1e9:.1f}", f"{flops / peak:.1%}"))
+        except Exception as e:
+            rows.append(("flow1", label, f"failed: {type(e).__name__}", "", ""))
+    chain = DeMoN("v1", 1.0, (192, 256)).eval()
+    images = torch.rand(1, 3, 192, 256) - 0.5
+    K = torch.tensor([[0.89115971, 1.18821287, 0.5, 0.5]])
+    with torch.no_grad():
+        infer = measure(lambda: chain(images, images, K, iterations=3), max(3, repeats // 4), min_time=1.0)
+    lines = [
+        "## train",
+        "",
+        f"`python -m demon_lab.bench train` — {dt.date.today().isoformat()}, {machine_line()}.",
+        f"Training steps per second of each stage at the `cpu` scale ({size[1]}x{size[0]}, width {width}, batch "
+        f"{batch_size}; iterative: 8 new + 8 queued), forward+backward+Adam. Achieved FLOP/s = FLOPs of a step "
+        "(torch.utils.flop_counter) / its time, against this machine's float32 matmul "
+        f"(2048x2048) measured in the same run: {peak / 1e9:.0f} GFLOP/s.",
+        "",
+        "| stage | variant | steps/s | GFLOP/s | of matmul peak |",
+        "|---|---|---:|---:|---:|",
+        *[f"| {a} | {b} | {c} | {d} | {e} |" for a, b, c, d, e in rows],
+        "",
+        f"Inference of the full chain (v1, full width, 256x192, bootstrap + 3 iterations + refinement, batch 1): "
+        f"{1 / infer:.2f} pairs/s.",
+        "",
+    ]
+    return "\n".join(lines)
+
+
+SECTIONS: dict[str, Callable[[int], str]] = {"geometry": bench_geometry, "data": bench_data, "train": bench_train}
 
 
 def write_section(path: Path, name: str, body: str) -> None:

@@ -108,6 +108,16 @@ def _checkpoint_step(path) -> int:
     return int(torch.load(path, map_location="cpu", weights_only=False).get("global_step", 0))
 
 
+def _quiet_lightning() -> None:
+    import logging
+    import warnings
+
+    for name in ("lightning.pytorch.utilities.rank_zero", "lightning.pytorch.accelerators.cuda"):
+        logging.getLogger(name).setLevel(logging.WARNING)
+    warnings.filterwarnings("ignore", message=".*LeafSpec.*")
+    warnings.filterwarnings("ignore", message=".*does not have many workers.*")
+
+
 def load_stage(chain: DeMoN, stage: StageDir) -> None:
     state = stage.load()
     for net, weights in state.items():
@@ -121,6 +131,7 @@ def prepare_chain(cfg: DictConfig, on_stage: Callable[[StageDir, str], L.pytorch
     ``on_stage(stage, status)`` is called with status 'cached' or 'train' and may return a logger
     for the stage's training curves. Returns the chain, the stage entries and per-stage figures.
     """
+    _quiet_lightning()
     L.seed_everything(int(cfg.seed), workers=True, verbose=False)
     chain = build_chain(cfg)
     figures: dict[str, dict] = {}
