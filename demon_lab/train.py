@@ -135,6 +135,15 @@ def prepare_chain(cfg: DictConfig, on_stage: Callable[[StageDir, str], L.pytorch
     L.seed_everything(int(cfg.seed), workers=True, verbose=False)
     chain = build_chain(cfg)
     figures: dict[str, dict] = {}
+    if not all(stage.done() for stage in stage_dirs(cfg)):
+        from demon_lab.config import instantiate
+        from demon_lab.data.datasets import warm_cache
+
+        start = time.perf_counter()
+        rendered = warm_cache([instantiate(e.dataset) for e in cfg.data.train])
+        if rendered:
+            print(f"[demon_lab] rendered {rendered} synthetic training scenes into the cache "
+                  f"in {time.perf_counter() - start:.0f} s", flush=True)
     for stage in stage_dirs(cfg):
         with stage.lock():
             if stage.done():

@@ -206,3 +206,20 @@ def test_killed_training_stage_resumes_from_its_checkpoint(tmp_path):
     c = client(tmp_path)
     statuses = [r.info.status for r in c.search_runs([c.get_experiment_by_name("default").experiment_id])]
     assert "FINISHED" in statuses
+
+
+def test_multirun_has_one_parent_run_and_trains_once(tmp_path):
+    result = cli("-m", *smoke_overrides(tmp_path), "iterations=0,2", cwd=tmp_path)
+    assert result.returncode == 0, result.stderr[-2000:]
+    c = client(tmp_path)
+    runs = c.search_runs([c.get_experiment_by_name("default").experiment_id])
+    parents = [r for r in runs if r.data.tags.get("demon_lab.kind") == "sweep"]
+    jobs = [r for r in runs if "demon_lab.run_key" in r.data.tags]
+    assert len(parents) == 1 and parents[0].info.status == "FINISHED"
+    assert sorted(r.data.tags["demon_lab.iterations"] for r in jobs) == ["0", "2"]
+    assert all(r.data.tags["mlflow.parentRunId"] == parents[0].info.run_id for r in jobs)
+    assert all(r.info.status == "FINISHED" for r in runs)
+    # the six stages were trained once (by the first job), the second job read the cache
+    stage_runs = [r for r in runs if r.data.tags.get("demon_lab.kind") == "stage"]
+    assert len(stage_runs) == 6
+    assert "it2" in result.stdout and "stage flow1: cached" in result.stdout

@@ -148,6 +148,35 @@ class SyntheticDataset(PairDataset):
         return sample
 
 
+def _render_into_cache(args: tuple[SyntheticDataset, list[int]]) -> int:
+    dataset, indices = args
+    for index in indices:
+        dataset.load(index)
+    return len(indices)
+
+
+def warm_cache(datasets: Sequence[PairDataset], processes: int | None = None) -> int:
+    """Render the synthetic samples missing from the disk cache, in parallel processes.
+
+    Training draws scenes at random, so without this the first epoch renders them one by one
+    in the training loop; here all cores render them up front. Returns the number rendered.
+    """
+    import multiprocessing as mp
+
+    jobs = []
+    for d in datasets:
+        if isinstance(d, SyntheticDataset) and d.cache is not None:
+            missing = [i for i in range(len(d)) if not (d.cache / f"{d.seed_of(i)}.pt").is_file()]
+            jobs += [(d, missing[k::8]) for k in range(8) if missing[k::8]]
+    if not jobs:
+        return 0
+    processes = processes or os.cpu_count() or 1
+    if processes == 1:
+        return sum(_render_into_cache(j) for j in jobs)
+    with mp.get_context("spawn").Pool(processes) as pool:
+        return sum(pool.imap_unordered(_render_into_cache, jobs))
+
+
 class DemonH5Dataset(PairDataset):
     """A DeMoN HDF5 file (:mod:`demon_lab.data.readers.demon_h5`)."""
 
