@@ -135,6 +135,9 @@ def prepare_chain(cfg: DictConfig, on_stage: Callable[[StageDir, str], L.pytorch
     L.seed_everything(int(cfg.seed), workers=True, verbose=False)
     chain = build_chain(cfg)
     figures: dict[str, dict] = {}
+    if not cfg.get("train", True):
+        print("[demon_lab] train=false: evaluating the untrained chain", flush=True)
+        return chain.eval(), [], figures
     if not all(stage.done() for stage in stage_dirs(cfg)):
         from demon_lab.config import instantiate
         from demon_lab.data.datasets import warm_cache

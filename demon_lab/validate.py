@@ -46,6 +46,7 @@ def validate(cfg: DictConfig) -> None:
     _int("seed", cfg.seed, 0)
     _choice("oracle", cfg.oracle, ORACLES)
     _choice("force", cfg.force, (True, False))
+    _choice("train", cfg.train, (True, False))
     _choice("model.variant", cfg.model.variant, ("v1", "v2"))
     _positive("model.width", cfg.model.width)
     size = list(cfg.data.size)
