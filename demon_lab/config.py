@@ -7,9 +7,21 @@ arbitrary code.
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Any
 
 ALLOWED_TARGETS = ("demon_lab.", "torch.", "lightning.")
+SHARED = Path(__file__).resolve().parents[2] / "shared"
+"""The ``shared/`` folder beside the project checkout, where the real SUN3D pair ships."""
+
+
+def register_resolvers() -> None:
+    """``${shared:data/real/...}`` -> an absolute path inside :data:`SHARED`, whatever the
+    working directory."""
+    from omegaconf import OmegaConf
+
+    if not OmegaConf.has_resolver("shared"):
+        OmegaConf.register_new_resolver("shared", lambda path="": str(SHARED / path))
 
 
 class ConfigError(ValueError):
@@ -48,3 +60,6 @@ def instantiate(cfg: Any, **kwargs: Any) -> Any:
         if isinstance(cause, ValueError):
             raise cause from None
         raise ConfigError(str(e).splitlines()[0]) from None
+
+
+register_resolvers()
