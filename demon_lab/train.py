@@ -95,12 +95,15 @@ def train_stage(cfg: DictConfig, chain: DeMoN, stage: StageDir, logger: L.pytorc
         gradient_clip_algorithm="value", enable_progress_bar=progress, enable_model_summary=False,
         num_sanity_val_steps=0, limit_val_batches=0, deterministic="warn", benchmark=False)
     resume = stage.last_checkpoint if stage.last_checkpoint.is_file() else None
+    start_step = _checkpoint_step(resume) if resume is not None else 0
+    if resume is not None:
+        print(f"[demon_lab] resuming stage {stage.name} from step {start_step} ({resume})", flush=True)
     start = time.perf_counter()
     trainer.fit(module, train_dataloaders=datamodule.train_dataloader(), ckpt_path=resume)
     seconds = time.perf_counter() - start
     stage.save({net: getattr(chain, net).state_dict() for net in TRAINED_NETS[stage.name]})
-    steps_done = int(spec.steps) - (0 if resume is None else _checkpoint_step(resume))
-    return {"seconds": seconds, "steps_per_second": steps_done / max(seconds, 1e-9),
+    steps_done = int(spec.steps) - start_step
+    return {"seconds": seconds, "steps_per_second": steps_done / max(seconds, 1e-9), "resumed_from_step": start_step,
             **{f"final/{k}": v for k, v in module.last_terms.items()}}
 
 

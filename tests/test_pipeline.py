@@ -198,11 +198,12 @@ def test_killed_training_stage_resumes_from_its_checkpoint(tmp_path):
 
     result = run(compose_config(args))
     assert result["status"] == "finished"
-    seconds_per_step = result["figures"]["flow1"]["seconds"]
     assert (checkpoints[0].parent / "weights.pt").is_file()
-    # the resumed stage ran only the remaining steps
-    resumed_steps = result["figures"]["flow1"]["steps_per_second"] * seconds_per_step
-    assert resumed_steps == pytest.approx(400 - step_at_kill, abs=1)
+    # the stage resumed from the checkpoint (at the kill step or a later one written just before
+    # the kill) and ran only the remaining steps
+    figures = result["figures"]["flow1"]
+    assert step_at_kill <= figures["resumed_from_step"] < 400
+    assert torch.load(checkpoints[0], map_location="cpu", weights_only=False)["global_step"] == 400
     c = client(tmp_path)
     statuses = [r.info.status for r in c.search_runs([c.get_experiment_by_name("default").experiment_id])]
     assert "FINISHED" in statuses
@@ -222,4 +223,4 @@ def test_multirun_has_one_parent_run_and_trains_once(tmp_path):
     # the six stages were trained once (by the first job), the second job read the cache
     stage_runs = [r for r in runs if r.data.tags.get("demon_lab.kind") == "stage"]
     assert len(stage_runs) == 6
-    assert "it2" in result.stdout and "stage flow1: cached" in result.stdout
+    assert result.stdout.count("stage flow1: cached") == 1 and result.stdout.count("[demon_lab] results") == 2
