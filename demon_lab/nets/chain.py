@@ -88,17 +88,17 @@ def flow_net_inputs(image2_2: torch.Tensor, inv_depth: torch.Tensor, normals: to
 
 
 def depth_motion_net_inputs(image2_2: torch.Tensor, flow: torch.Tensor, conf: torch.Tensor,
-                            prev_motion: torch.Tensor | None, intrinsics: torch.Tensor,
-                            variant: str) -> torch.Tensor:
+                            prev_motion: torch.Tensor | None, intrinsics: torch.Tensor) -> torch.Tensor:
     """The depth-motion net's extra channels (stop-gradient): image 2 warped with the flow, the
-    flow and its confidence, and (iterative net) the depth triangulated from the flow with the
-    previous motion (v2 clips it to [0, 50])."""
+    flow and its confidence, and (iterative net) the inverse depth triangulated from the flow with
+    the previous motion, clipped to [0, 50] as v2 does. demon_lab clips for v1 too: it trains v1
+    from scratch, and an untrained flow net's triangulated inverse depth reaches the thousands
+    (measured: max 1107, 99th percentile 28 on the cpu-scale test scenes), which destabilises dm2."""
     with torch.no_grad():
         flow = finite(flow)
         parts = [geo.warp_image(image2_2, flow), flow, finite(conf)]
         if prev_motion is not None:
-            clip = (0.0, 50.0) if variant == "v2" else None
-            parts.append(finite(geo.depth_from_flow_motion(flow, prev_motion, intrinsics, clip=clip)))
+            parts.append(finite(geo.depth_from_flow_motion(flow, prev_motion, intrinsics, clip=(0.0, 50.0))))
         return torch.cat(parts, 1)
 
 
@@ -124,7 +124,7 @@ class DeMoN(nn.Module):
         flowconf5, flowconf2 = self.flow1(pair)
         flow, conf = flowconf2[:, :2], flowconf2[:, 2:]
         dm_flow, dm_conf = (gt2.flow, _oracle_confidence(gt2.flow)) if oracle == "flow" else (flow, conf)
-        extra = depth_motion_net_inputs(image2_2, dm_flow, dm_conf, None, intrinsics, self.variant)
+        extra = depth_motion_net_inputs(image2_2, dm_flow, dm_conf, None, intrinsics)
         dm = self.dm1(pair, extra)
         return Prediction(flow, conf, flowconf5[:, :2], flowconf5[:, 2:], dm.inv_depth, dm.normals, dm.motion)
 
@@ -136,8 +136,7 @@ class DeMoN(nn.Module):
         flowconf5, flowconf2 = self.flow2(pair, extra)
         flow, conf = flowconf2[:, :2], flowconf2[:, 2:]
         dm_flow, dm_conf = (gt2.flow, _oracle_confidence(gt2.flow)) if oracle == "flow" else (flow, conf)
-        extra = depth_motion_net_inputs(image2_2, dm_flow, dm_conf, prev.motion.detach(), intrinsics,
-                                        self.variant)
+        extra = depth_motion_net_inputs(image2_2, dm_flow, dm_conf, prev.motion.detach(), intrinsics)
         dm = self.dm2(pair, extra)
         return Prediction(flow, conf, flowconf5[:, :2], flowconf5[:, 2:], dm.inv_depth, dm.normals, dm.motion)
 

@@ -24,7 +24,7 @@ from typing import Any
 
 import torch
 
-CODE_VERSION = 1  # bump when training code changes what a stage produces
+CODE_VERSION = 2  # bump when training code changes what a stage produces
 
 
 def stage_key(description: Mapping[str, Any]) -> str:

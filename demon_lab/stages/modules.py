@@ -67,7 +67,7 @@ class DepthMotionStage(StageModule):
                 prev_motion = prev.motion
             if gt2 is not None:
                 flow, conf = gt2.flow, torch.isfinite(gt2.flow).to(gt2.flow.dtype)
-            extra = depth_motion_net_inputs(image2_2, flow, conf, prev_motion, K, self.chain.variant)
+            extra = depth_motion_net_inputs(image2_2, flow, conf, prev_motion, K)
         dm = getattr(self.chain, self.net)(pair, extra)
         ramp = self.ramp(2.0 if self.net == "dm1" else 1.0)
         return losses.depth_motion_loss(dm.inv_depth, dm.normals, dm.motion, gt, self.weights, ramp=ramp)
