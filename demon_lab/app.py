@@ -40,11 +40,11 @@ def job_tags(cfg: DictConfig, key: str) -> dict[str, str]:
     }
 
 
-def format_table(summary: dict[str, dict[str, float]], iterations: int) -> str:
+def format_table(summary: dict[str, dict[str, float]], iterations: int, refined: bool = True) -> str:
     header = ["test set", "pass", *[label for _, label in TABLE_COLUMNS]]
     rows = []
     for name, values in summary.items():
-        for it in [*range(iterations + 1), "refined"]:
+        for it in [*range(iterations + 1), *(["refined"] if refined else [])]:
             prefix = "refined" if it == "refined" else f"it{it}"
             cells = []
             for key, _ in TABLE_COLUMNS:
@@ -134,12 +134,13 @@ def _train_and_evaluate(cfg: DictConfig, tracker, run_id: str) -> dict[str, Any]
 
     summary: dict[str, dict[str, float]] = {}
     all_rows = []
+    with_refined = not cfg.train or "refine" in [s.name for s in stages]
     with tempfile.TemporaryDirectory() as tmp:
         for entry in cfg.data.test:
             dataset = instantiate(entry)
             keep = max(int(cfg.eval.visualize), int(cfg.eval.point_clouds))
             rows, kept = evaluate_dataset(chain, dataset, int(cfg.iterations), cfg.oracle, int(cfg.eval.batch_size),
-                                          cfg.eval.max_samples, keep=keep)
+                                          cfg.eval.max_samples, keep=keep, refined=with_refined)
             summary[dataset.name] = summarize(rows, int(cfg.iterations))
             all_rows += [{"dataset": dataset.name, **r} for r in rows]
             _save_visuals(Path(tmp), dataset.name, kept, int(cfg.eval.visualize), int(cfg.eval.point_clouds))
@@ -150,7 +151,7 @@ def _train_and_evaluate(cfg: DictConfig, tracker, run_id: str) -> dict[str, Any]
         for sub in ("images", "point_clouds"):
             if (Path(tmp) / sub).is_dir():
                 tracker.log_artifact(run_id, Path(tmp) / sub)
-    table = format_table(summary, int(cfg.iterations))
+    table = format_table(summary, int(cfg.iterations), with_refined)
     tracker.log_text(run_id, table + "\n", "results.txt")
     print(f"\n[demon_lab] results (scale {cfg.scale.name}, seed {cfg.seed}, {cfg.iterations} iterations"
           f"{', oracle ' + str(cfg.oracle) if cfg.oracle else ''}; depth metrics on unit-baseline depth, "

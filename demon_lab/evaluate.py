@@ -21,10 +21,11 @@ from demon_lab.nets.chain import DeMoN
 
 @torch.no_grad()
 def evaluate_dataset(chain: DeMoN, dataset, iterations: int, oracle: str | None = None,
-                     batch_size: int = 4, max_samples: int | None = None,
-                     keep: int = 0) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
+                     batch_size: int = 4, max_samples: int | None = None, keep: int = 0,
+                     refined: bool = True) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
     """Per-sample metric rows (one per sample and iteration, ``it`` = 0..N or 'refined') and the
-    raw predictions of the first ``keep`` samples (for visualisations)."""
+    raw predictions of the first ``keep`` samples (for visualisations). ``refined=False`` (the
+    refinement net was not trained) leaves out the refined rows."""
     n = len(dataset) if max_samples is None else min(len(dataset), int(max_samples))
     subset = torch.utils.data.Subset(dataset, range(n))
     device = next(chain.parameters()).device
@@ -41,28 +42,31 @@ def evaluate_dataset(chain: DeMoN, dataset, iterations: int, oracle: str | None 
                 pred = {"inv_depth": p.inv_depth[i, 0].cpu(), "motion": p.motion[i].cpu(), "flow": p.flow[i].cpu()}
                 rows.append({"id": batch["id"][i], "it": k, **metrics.evaluate_sample(pred, truth)})
             last = out.passes[-1]
-            refined = {"inv_depth": out.refined[i, 0].cpu(), "motion": last.motion[i].cpu(),
-                       "flow": last.flow[i].cpu()}
-            rows.append({"id": batch["id"][i], "it": "refined", **metrics.evaluate_sample(refined, truth)})
+            depth = out.refined[i, 0].cpu() if refined else last.inv_depth[i, 0].cpu()
+            if refined:
+                pred = {"inv_depth": depth, "motion": last.motion[i].cpu(), "flow": last.flow[i].cpu()}
+                rows.append({"id": batch["id"][i], "it": "refined", **metrics.evaluate_sample(pred, truth)})
             if len(kept) < keep:
                 kept.append({"id": batch["id"][i], "image1": batch["image1"][i],
                              "gt_inv_depth": batch["inv_depth"][i, 0],
-                             "inv_depth": out.refined[i, 0].cpu(), "flow": last.flow[i].cpu(),
+                             "inv_depth": depth, "flow": last.flow[i].cpu(),
                              "normals": last.normals[i].cpu(), "intrinsics": batch["intrinsics"][i]})
     return rows, kept
 
 
 def summarize(rows: Sequence[dict[str, Any]], iterations: int) -> dict[str, float]:
-    """Means over samples: ``it<k>/<metric>``, ``refined/<metric>`` and the summary ``<metric>``."""
+    """Means over samples: ``it<k>/<metric>``, ``refined/<metric>`` and the summary ``<metric>``
+    (refined depth when there is one, else the last pass's)."""
     out: dict[str, float] = {}
-    groups = [*range(iterations + 1), "refined"]
+    groups = [*range(iterations + 1), *(["refined"] if any(r["it"] == "refined" for r in rows) else [])]
     for it in groups:
         means = metrics.summarize([{k: v for k, v in r.items() if k != "it"} for r in rows if r["it"] == it])
         prefix = "refined" if it == "refined" else f"it{it}"
         out.update({f"{prefix}/{k}": v for k, v in means.items() if not k.startswith("n_failed")})
     for key in metrics.DEPTH_KEYS:
-        if f"refined/{key}" in out:
-            out[key] = out[f"refined/{key}"]
+        source = f"refined/{key}" if "refined" in groups else f"it{iterations}/{key}"
+        if source in out:
+            out[key] = out[source]
     for key in (*metrics.MOTION_KEYS, "epe"):
         if f"it{iterations}/{key}" in out:
             out[key] = out[f"it{iterations}/{key}"]

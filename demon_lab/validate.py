@@ -61,6 +61,10 @@ def validate(cfg: DictConfig) -> None:
     _positive("schedule.grad_clip", cfg.schedule.grad_clip)
     stages = list(cfg.schedule.stages)
     _choice("schedule.until", cfg.schedule.until, tuple(stages))
+    trained = stages[: stages.index(cfg.schedule.until) + 1]
+    if cfg.iterations > 0 and cfg.train and not {"flow2", "dm2"} <= set(trained):
+        raise ConfigError(f"iterations: expected 0 when schedule.until={cfg.schedule.until} "
+                          f"(the iterative nets flow2 and dm2 are not trained), got {cfg.iterations}")
     for name in stages:
         spec = cfg.schedule.stages[name]
         _choice(f"schedule.stages.{name}.kind", spec.kind, STAGE_KINDS)

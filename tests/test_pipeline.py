@@ -147,6 +147,7 @@ def test_a_job_that_raises_leaves_its_run_failed(tmp_path):
     (["loss=no_such_preset"], "Could not find 'loss/no_such_preset'"),
     (["schedule.stages.dm1.oracle=depth_motion"], "schedule.stages.dm1.oracle: expected one of null, flow"),
     (["-m", "iterations=0,1,-2"], "iterations: expected an integer >= 0, got -2"),
+    (["schedule.until=dm1"], "iterations: expected 0 when schedule.until=dm1"),
 ])
 def test_bad_configuration_is_one_line_before_any_work(args, message, tmp_path):
     result = cli(*smoke_overrides(tmp_path), *args, cwd=tmp_path)
@@ -172,7 +173,8 @@ def test_documented_configurations_compose_and_validate(overrides):
 def test_killed_training_stage_resumes_from_its_checkpoint(tmp_path):
     """A real job is killed (SIGKILL) mid-stage; the same command resumes from the stage's last
     checkpoint instead of starting over."""
-    args = smoke_overrides(tmp_path, "scale.steps.flow1=400", "schedule.until=flow1", "scale.checkpoint_every=5",
+    args = smoke_overrides(tmp_path, "scale.steps.flow1=400", "schedule.until=flow1", "iterations=0",
+                           "scale.checkpoint_every=5",
                            "eval.max_samples=1")
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
     proc = subprocess.Popen([sys.executable, "-m", "demon_lab", *args], cwd=tmp_path, env=env,
