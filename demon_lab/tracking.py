@@ -63,7 +63,12 @@ def semantic_config(cfg: DictConfig) -> dict[str, Any]:
 
 
 def run_key(cfg: DictConfig) -> str:
-    return hashlib.sha256(json.dumps(semantic_config(cfg), sort_keys=True, default=str).encode()).hexdigest()[:16]
+    """Hash of the semantic config and the stage cache's code version (a change of the training
+    code that changes results bumps it, so old FINISHED runs no longer count as this job)."""
+    from demon_lab.stages.cache import CODE_VERSION
+
+    payload = {"config": semantic_config(cfg), "code_version": CODE_VERSION}
+    return hashlib.sha256(json.dumps(payload, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
 
 def flatten(d: Mapping[str, Any], prefix: str = "") -> dict[str, str]:
