@@ -95,6 +95,22 @@ class Head(nn.Module):
         return self.out(self.hidden(x))
 
 
+def add_encoder_levels(net: nn.Module, width: float, variant: str, conv5_kernel: int) -> int:
+    """Add the encoder layers shared by the flow and depth-motion nets, conv2_1 .. conv5_1
+    (spec tables 1.1 and 1.2; only conv5's kernel differs). Returns conv5_1's channel count."""
+    c = lambda n: scaled(n, width)  # noqa: E731
+    v1 = variant == "v1"
+    net.conv2_1 = ConvPair(c(64), c(64), 3, 1, variant)
+    net.conv3 = ConvPair(c(64), c(128) if v1 else (c(96), c(128)), 5, 2, variant)
+    net.conv3_1 = ConvPair(c(128), c(128), 3, 1, variant)
+    net.conv4 = ConvPair(c(128), c(256) if v1 else (c(192), c(256)), 5, 2, variant)
+    net.conv4_1 = ConvPair(c(256), c(256), 3, 1, variant)
+    c5 = c(512) if v1 else c(384)
+    net.conv5 = ConvPair(c(256), c5, conv5_kernel, 2, variant)
+    net.conv5_1 = ConvPair(c5, c5, 3, 1, variant)
+    return c5
+
+
 def check_variant(variant: str) -> None:
     if variant not in VARIANTS:
         raise ValueError(f"variant: expected one of {VARIANTS}, got {variant!r}")

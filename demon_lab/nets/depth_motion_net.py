@@ -7,7 +7,7 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
-from demon_lab.nets.blocks import Conv, ConvPair, Head, UpConv, check_variant, lrelu, scaled
+from demon_lab.nets.blocks import Conv, ConvPair, Head, UpConv, add_encoder_levels, check_variant, lrelu, scaled
 from demon_lab.nets.flow_net import Dense5
 
 
@@ -49,14 +49,7 @@ class DepthMotionNet(nn.Module):
         self.conv1 = ConvPair(6, c(32) if v1 else (c(24), c(32)), 9, 2, variant)
         self.conv2 = ConvPair(c(32), c(32), 7, 2, variant)
         self.conv2_extra = ConvPair(8 if iterative else 7, c(32), 3, 1, variant)
-        self.conv2_1 = ConvPair(c(64), c(64), 3, 1, variant)
-        self.conv3 = ConvPair(c(64), c(128) if v1 else (c(96), c(128)), 5, 2, variant)
-        self.conv3_1 = ConvPair(c(128), c(128), 3, 1, variant)
-        self.conv4 = ConvPair(c(128), c(256) if v1 else (c(192), c(256)), 5, 2, variant)
-        self.conv4_1 = ConvPair(c(256), c(256), 3, 1, variant)
-        c5 = c(512) if v1 else c(384)
-        self.conv5 = ConvPair(c(256), c5, 3, 2, variant)
-        self.conv5_1 = ConvPair(c5, c5, 3, 1, variant)
+        c5 = add_encoder_levels(self, width, variant, conv5_kernel=3)
         if v1:
             self.motion_conv1 = Conv(c5, c(128), (3, 3), (1, 1), variant)
         else:

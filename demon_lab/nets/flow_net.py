@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from demon_lab.nets.blocks import ConvPair, Head, UpConv, check_variant, lrelu, scaled
+from demon_lab.nets.blocks import ConvPair, Head, UpConv, add_encoder_levels, check_variant, lrelu, scaled
 
 
 class Dense5(nn.Module):
@@ -53,14 +53,7 @@ class FlowNet(nn.Module):
         self.conv2 = ConvPair(c(32), c2, 7, 2, variant)
         if iterative:
             self.conv2_extra = ConvPair(9, c(32), 3, 1, variant)
-        self.conv2_1 = ConvPair(c(64), c(64), 3, 1, variant)
-        self.conv3 = ConvPair(c(64), c(128) if v1 else (c(96), c(128)), 5, 2, variant)
-        self.conv3_1 = ConvPair(c(128), c(128), 3, 1, variant)
-        self.conv4 = ConvPair(c(128), c(256) if v1 else (c(192), c(256)), 5, 2, variant)
-        self.conv4_1 = ConvPair(c(256), c(256), 3, 1, variant)
-        c5 = c(512) if v1 else c(384)
-        self.conv5 = ConvPair(c(256), c5, 5, 2, variant)
-        self.conv5_1 = ConvPair(c5, c5, 3, 1, variant)
+        c5 = add_encoder_levels(self, width, variant, conv5_kernel=5)
         if not v1:
             self.dense5 = Dense5(c(96), (size[0] // 32, size[1] // 32))
             c5 += c(96)
