@@ -69,7 +69,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
             print(f"[demon_lab] skipped: run key {key} already has the FINISHED run {existing} "
                   f"(experiment {cfg.experiment!r}); pass force=true to run it again")
             return {"status": "skipped", "run_id": existing, "run_key": key}
-    parent = _parent_run(cfg, tracker)
+    parent = _parent_run()
     run_id = tracker.start(f"{cfg.experiment}-{key[:8]}", job_tags(cfg, key), parent_id=parent)
     try:
         resolved = OmegaConf.to_yaml(cfg, resolve=True)
@@ -83,7 +83,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
         raise
 
 
-def _parent_run(cfg: DictConfig, tracker) -> str | None:
+def _parent_run() -> str | None:
     """The multirun's parent run id (created once per sweep by the Hydra callback), if any."""
     import os
 
@@ -173,6 +173,7 @@ def _csv(rows: list[dict[str, Any]]) -> str:
 def _save_visuals(root: Path, name: str, kept: list[dict], n_images: int, n_clouds: int) -> None:
     import cv2
     import numpy as np
+    import torch
 
     from demon_lab import geometry as geo
 
@@ -203,7 +204,7 @@ def _save_visuals(root: Path, name: str, kept: list[dict], n_images: int, n_clou
         inv = s["inv_depth"][None, None].double()
         h, w = inv.shape[2:]
         rays = geo._rays(h, w, s["intrinsics"][None].double())[0]
-        valid = (inv[0, 0] > 0) & torch_isfinite(inv[0, 0])
+        valid = (inv[0, 0] > 0) & torch.isfinite(inv[0, 0])
         points = (rays / inv[0]).permute(1, 2, 0)[valid].numpy()
         img = cv2.resize(((s["image1"].permute(1, 2, 0).numpy() + 0.5) * 255).clip(0, 255).astype(np.uint8), (w, h),
                          interpolation=cv2.INTER_AREA)[valid.numpy()]
@@ -212,12 +213,6 @@ def _save_visuals(root: Path, name: str, kept: list[dict], n_images: int, n_clou
         header = ["ply", "format ascii 1.0", f"element vertex {len(lines)}", "property float x", "property float y",
                   "property float z", "property uchar red", "property uchar green", "property uchar blue", "end_header"]
         (root / "point_clouds" / f"{safe}.ply").write_text("\n".join(header + lines) + "\n")
-
-
-def torch_isfinite(x):
-    import torch
-
-    return torch.isfinite(x)
 
 
 def main_task(cfg: DictConfig) -> None:

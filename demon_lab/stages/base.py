@@ -11,7 +11,6 @@ positions are not given, demon_lab puts them at 40, 60 and 80 % of the stage).
 
 from __future__ import annotations
 
-import math
 from collections.abc import Mapping, Sequence
 
 import lightning as L
@@ -119,6 +118,3 @@ class StageModule(L.LightningModule):
     def level5(self, duration_fraction: float) -> float:
         return losses.ease_in_quad_down(self.global_step, duration_fraction * self.steps)
 
-
-def is_finite_number(x: float) -> bool:
-    return isinstance(x, int | float) and math.isfinite(x)
