@@ -16,11 +16,22 @@ MAX_CHECKED_JOBS = 256
 
 
 def _job_overrides(args: list[str]) -> list[list[str]]:
-    """The overrides of each job: sweeps (a=1,2) expanded, Hydra's own options left out."""
+    """The overrides of each job: sweeps (a=1,2) expanded, Hydra's own options left out. With
+    ``-m``, the sweeps an experiment declares in ``hydra.sweeper.params`` are expanded too (the
+    command line wins for a key it also sets), as Hydra's basic sweeper does."""
     from hydra.core.override_parser.overrides_parser import OverridesParser
 
     plain = [a for a in args if not a.startswith("-") and not a.lstrip("+~").startswith(("hydra.", "hydra/"))]
-    parsed = OverridesParser.create().parse_overrides(plain)
+    parser = OverridesParser.create()
+    parsed = parser.parse_overrides(plain)
+    if any(a in ("-m", "--multirun") for a in args):
+        from hydra import compose
+
+        fixed = [o.input_line for o in parsed if not o.is_sweep_override()]
+        params = compose("config", overrides=fixed, return_hydra_config=True).hydra.sweeper.get("params") or {}
+        given = {o.get_key_element().lstrip("+~") for o in parsed}
+        extra = [f"{k}={v}" for k, v in params.items() if k.lstrip("+~") not in given]
+        parsed += parser.parse_overrides(extra)
     choices = []
     for o in parsed:
         if o.is_sweep_override():
@@ -40,11 +51,11 @@ def check(args: list[str]) -> str | None:
     from demon_lab.config import ConfigError
     from demon_lab.validate import validate
 
-    try:
-        jobs = _job_overrides(args)
-    except HydraException as e:
-        return str(e).splitlines()[0]
     with initialize_config_dir(CONF, version_base="1.3"):
+        try:
+            jobs = _job_overrides(args)
+        except (HydraException, OmegaConfBaseException) as e:
+            return str(e).splitlines()[0]
         for overrides in jobs:
             try:
                 validate(compose("config", overrides=overrides))

@@ -33,22 +33,23 @@ def job_tags(cfg: DictConfig, key: str) -> dict[str, str]:
     return {
         f"{TAG}run_key": key, f"{TAG}experiment": cfg.experiment, f"{TAG}row": str(cfg.row),
         f"{TAG}seed": str(cfg.seed), f"{TAG}scale": str(cfg.scale.name), f"{TAG}data": str(cfg.data.name),
-        f"{TAG}iterations": str(cfg.iterations), f"{TAG}oracle": str(cfg.oracle),
+        f"{TAG}iterations": str(cfg.iterations), f"{TAG}oracle": str(cfg.oracle), f"{TAG}method": str(cfg.method),
         **{f"{TAG}{k}": v for k, v in git_state().items()},
         f"{TAG}torch": torch.__version__, f"{TAG}cuda": str(torch.version.cuda),
         f"{TAG}device": "cuda" if torch.cuda.is_available() else "cpu", f"{TAG}host_python": platform.python_version(),
     }
 
 
-def format_table(summary: dict[str, dict[str, float]], iterations: int, refined: bool = True) -> str:
+def format_table(summary: dict[str, dict[str, float]], iterations: int, refined: bool = True,
+                 passes: list[str] | None = None) -> str:
     header = ["test set", "pass", *[label for _, label in TABLE_COLUMNS]]
     rows = []
     for name, values in summary.items():
-        for it in [*range(iterations + 1), *(["refined"] if refined else [])]:
-            prefix = "refined" if it == "refined" else f"it{it}"
+        for it in passes or [*range(iterations + 1), *(["refined"] if refined else [])]:
+            prefix = {"refined": "refined/", "baseline": ""}.get(str(it), f"it{it}/")
             cells = []
             for key, _ in TABLE_COLUMNS:
-                v = values.get(f"{prefix}/{key}", math.nan)
+                v = values.get(f"{prefix}{key}", math.nan)
                 cells.append("-" if v != v else f"{v:.3f}")
             rows.append([name, str(it), *cells])
     widths = [max(len(r[i]) for r in [header, *rows]) for i in range(len(header))]
@@ -93,6 +94,7 @@ def _parent_run() -> str | None:
 
 
 def _train_and_evaluate(cfg: DictConfig, tracker, run_id: str) -> dict[str, Any]:
+    from demon_lab.baselines import summarize_baseline
     from demon_lab.config import instantiate
     from demon_lab.evaluate import evaluate_dataset, summarize
     from demon_lab.tracking import TAG, stage_logger
@@ -111,8 +113,10 @@ def _train_and_evaluate(cfg: DictConfig, tracker, run_id: str) -> dict[str, Any]
         loggers.append((child, logger))
         return logger
 
+    needs_chain = cfg.method in ("demon", "base_mat_f")
     try:
-        chain, stages, figures = prepare_chain(cfg, on_stage, progress=sys.stderr.isatty())
+        chain, stages, figures = (prepare_chain(cfg, on_stage, progress=sys.stderr.isatty()) if needs_chain
+                                  else (None, [], {}))
     except BaseException as e:
         for child, _ in loggers:
             tracker.fail(child, e)
@@ -134,14 +138,19 @@ def _train_and_evaluate(cfg: DictConfig, tracker, run_id: str) -> dict[str, Any]
 
     summary: dict[str, dict[str, float]] = {}
     all_rows = []
-    with_refined = not cfg.train or "refine" in [s.name for s in stages]
+    with_refined = cfg.method == "demon" and (not cfg.train or "refine" in [s.name for s in stages])
+    keep = max(int(cfg.eval.visualize), int(cfg.eval.point_clouds))
     with tempfile.TemporaryDirectory() as tmp:
         for entry in cfg.data.test:
             dataset = instantiate(entry)
-            keep = max(int(cfg.eval.visualize), int(cfg.eval.point_clouds))
-            rows, kept = evaluate_dataset(chain, dataset, int(cfg.iterations), cfg.oracle, int(cfg.eval.batch_size),
-                                          cfg.eval.max_samples, keep=keep, refined=with_refined)
-            summary[dataset.name] = summarize(rows, int(cfg.iterations))
+            if cfg.method == "demon":
+                rows, kept = evaluate_dataset(chain, dataset, int(cfg.iterations), cfg.oracle,
+                                              int(cfg.eval.batch_size), cfg.eval.max_samples, keep=keep,
+                                              refined=with_refined)
+                summary[dataset.name] = summarize(rows, int(cfg.iterations))
+            else:
+                rows, kept = _evaluate_baseline(cfg, entry, dataset, chain, keep)
+                summary[dataset.name] = summarize_baseline(rows)
             all_rows += [{"dataset": dataset.name, **r} for r in rows]
             _save_visuals(Path(tmp), dataset.name, kept, int(cfg.eval.visualize), int(cfg.eval.point_clouds))
         metrics = {f"test/{name}/{k}": v for name, values in summary.items() for k, v in values.items()}
@@ -151,12 +160,30 @@ def _train_and_evaluate(cfg: DictConfig, tracker, run_id: str) -> dict[str, Any]
         for sub in ("images", "point_clouds"):
             if (Path(tmp) / sub).is_dir():
                 tracker.log_artifact(run_id, Path(tmp) / sub)
-    table = format_table(summary, int(cfg.iterations), with_refined)
+    if cfg.method == "demon":
+        table = format_table(summary, int(cfg.iterations), with_refined)
+    else:
+        table = format_table(summary, 0, refined=False, passes=["baseline"])
     tracker.log_text(run_id, table + "\n", "results.txt")
-    print(f"\n[demon_lab] results (scale {cfg.scale.name}, seed {cfg.seed}, {cfg.iterations} iterations"
-          f"{', oracle ' + str(cfg.oracle) if cfg.oracle else ''}; depth metrics on unit-baseline depth, "
-          f"rot/tran in degrees, EPE in normalised flow units):\n{table}\n", flush=True)
+    what = (f"{cfg.iterations} iterations{', oracle ' + str(cfg.oracle) if cfg.oracle else ''}"
+            if cfg.method == "demon" else f"method {cfg.method}")
+    print(f"\n[demon_lab] results (scale {cfg.scale.name}, seed {cfg.seed}, {what}; depth metrics on "
+          f"unit-baseline depth, rot/tran in degrees, EPE in normalised flow units):\n{table}\n", flush=True)
     return {"summary": summary, "figures": figures}
+
+
+def _evaluate_baseline(cfg: DictConfig, entry: DictConfig, dataset, chain, keep: int):
+    """A classical baseline on one test set (``base_oracle`` reads the same samples at
+    ``baseline.oracle_scale`` times the resolution)."""
+    from demon_lab.baselines import BaselineConfig, evaluate_baseline
+    from demon_lab.config import instantiate
+
+    params = BaselineConfig(**{**OmegaConf.to_container(cfg.baseline, resolve=True), "seed": int(cfg.seed)})
+    hires = None
+    if cfg.method == "base_oracle":
+        hires = instantiate(entry, size=[int(s) * params.oracle_scale for s in cfg.data.size])
+    return evaluate_baseline(cfg.method, dataset, params, chain=chain, iterations=int(cfg.iterations),
+                             hires_dataset=hires, max_samples=cfg.eval.max_samples, keep=keep)
 
 
 def _csv(rows: list[dict[str, Any]]) -> str:

@@ -37,6 +37,25 @@ def _choice(key: str, value: Any, allowed: tuple) -> None:
         raise ConfigError(f"{key}: expected one of {shown}, got {value!r}")
 
 
+METHODS = ("demon", "base_ff", "base_sift", "base_mat_f", "base_oracle")
+
+
+def _baseline(node: DictConfig) -> None:
+    _choice("baseline.dis_preset", node.dis_preset, ("ultrafast", "fast", "medium"))
+    for key in ("fb_threshold_px", "ransac_threshold_px", "sift_ratio", "sweep_max_disparity"):
+        _positive(f"baseline.{key}", node[key])
+    if node.sift_ratio >= 1:
+        raise ConfigError(f"baseline.sift_ratio: expected a number in (0, 1), got {node.sift_ratio}")
+    _int("baseline.ransac_iterations", node.ransac_iterations, 1)
+    _int("baseline.max_correspondences", node.max_correspondences, 8)
+    _int("baseline.min_matches", node.min_matches, 8)
+    _int("baseline.sweep_hypotheses", node.sweep_hypotheses, 2)
+    _int("baseline.oracle_scale", node.oracle_scale, 1)
+    window = _int("baseline.sweep_window", node.sweep_window, 1)
+    if window % 2 == 0:
+        raise ConfigError(f"baseline.sweep_window: expected an odd integer, got {window}")
+
+
 def validate(cfg: DictConfig) -> None:
     try:
         OmegaConf.to_container(cfg, resolve=True, throw_on_missing=True)
@@ -45,6 +64,11 @@ def validate(cfg: DictConfig) -> None:
     _int("iterations", cfg.iterations, 0)
     _int("seed", cfg.seed, 0)
     _choice("oracle", cfg.oracle, ORACLES)
+    _choice("method", cfg.method, METHODS)
+    if cfg.method != "demon" and cfg.oracle is not None:
+        raise ConfigError(f"oracle: expected null with method={cfg.method} (oracles feed the DeMoN chain), "
+                          f"got {cfg.oracle!r}")
+    _baseline(cfg.baseline)
     _choice("force", cfg.force, (True, False))
     _choice("train", cfg.train, (True, False))
     _choice("model.variant", cfg.model.variant, ("v1", "v2"))
@@ -62,7 +86,8 @@ def validate(cfg: DictConfig) -> None:
     stages = list(cfg.schedule.stages)
     _choice("schedule.until", cfg.schedule.until, tuple(stages))
     trained = stages[: stages.index(cfg.schedule.until) + 1]
-    if cfg.iterations > 0 and cfg.train and not {"flow2", "dm2"} <= set(trained):
+    flow_oracle_study = cfg.oracle == "depth_motion" and "flow2" in trained  # scores flow2 only (EPE)
+    if cfg.iterations > 0 and cfg.train and not {"flow2", "dm2"} <= set(trained) and not flow_oracle_study:
         raise ConfigError(f"iterations: expected 0 when schedule.until={cfg.schedule.until} "
                           f"(the iterative nets flow2 and dm2 are not trained), got {cfg.iterations}")
     for name in stages:

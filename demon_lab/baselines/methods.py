@@ -1,0 +1,182 @@
+"""The paper's classical baselines (supplementary section E; main paper Table 2).
+
+Each method maps one sample (an image pair with intrinsics, as ``demon_lab.data`` produces it) to
+``{"inv_depth": (h, w), "motion": (6,)}`` (inverse depth for a unit-length translation) and is
+scored by ``demon_lab.metrics.evaluate_sample`` exactly like the networks:
+
+* ``base_ff`` — dense DIS flow (OpenCV; the stand-in for FlowFields), forward-backward filtering,
+  normalised 8-point in RANSAC, pose from the essential matrix, depth by triangulating the flow;
+* ``base_sift`` — SIFT matches with the ratio test, 8-point in RANSAC, depth as ``base_ff``;
+* ``base_mat_f`` — Nister's 5-point in RANSAC (``cv2.findEssentialMat``) on the flow predicted by
+  the trained DeMoN chain, depth by triangulating that flow;
+* ``base_oracle`` — ground-truth motion and plane-sweep stereo at a higher resolution than the
+  network's (the paper's Base-Oracle uses 640x480 against DeMoN's 256x192).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any
+
+import cv2
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from demon_lab import geometry as geo
+from demon_lab.baselines.twoview import (
+    BaselineFailure,
+    dense_flow,
+    depth_from_pixel_flow,
+    forward_backward_mask,
+    motion_from_fundamental,
+    pixel_intrinsics,
+    pose_from_essential,
+    ransac_fundamental,
+    scaled_threshold,
+    to_gray_u8,
+)
+
+METHODS = ("base_ff", "base_sift", "base_mat_f", "base_oracle")
+
+
+@dataclass(frozen=True)
+class BaselineConfig:
+    """Parameters of the baselines (``conf/baseline/default.yaml``); pixel values at width 256."""
+
+    dis_preset: str = "medium"
+    fb_threshold_px: float = 1.0
+    ransac_threshold_px: float = 1.0
+    ransac_iterations: int = 1000
+    max_correspondences: int = 4000
+    sift_ratio: float = 0.8
+    min_matches: int = 16
+    sweep_hypotheses: int = 96
+    sweep_window: int = 7
+    sweep_max_disparity: float = 0.25
+    oracle_scale: int = 2
+    seed: int = 0
+
+
+def _subsample(n: int, limit: int, seed: int) -> np.ndarray:
+    if n <= limit:
+        return np.arange(n)
+    return np.sort(np.random.default_rng(seed).choice(n, limit, replace=False))
+
+
+def base_ff(sample: Mapping[str, Any], cfg: BaselineConfig) -> dict[str, np.ndarray]:
+    g1, g2 = to_gray_u8(sample["image1"]), to_gray_u8(sample["image2"])
+    h, w = g1.shape
+    forward, backward = dense_flow(g1, g2, cfg.dis_preset), dense_flow(g2, g1, cfg.dis_preset)
+    mask = forward_backward_mask(forward, backward, scaled_threshold(cfg.fb_threshold_px, w))
+    ys, xs = np.nonzero(mask)
+    if len(xs) < cfg.min_matches:
+        raise BaselineFailure(f"{len(xs)} forward-backward consistent pixels (needs {cfg.min_matches})")
+    pick = _subsample(len(xs), cfg.max_correspondences, cfg.seed)
+    x1 = np.stack([xs[pick], ys[pick]], 1).astype(np.float64)
+    x2 = x1 + forward[ys[pick], xs[pick]].astype(np.float64)
+    K = pixel_intrinsics(sample["intrinsics"], h, w)
+    Fm, inliers = ransac_fundamental(x1, x2, scaled_threshold(cfg.ransac_threshold_px, w), cfg.ransac_iterations,
+                                     cfg.seed, cfg.min_matches)
+    motion = motion_from_fundamental(Fm, x1, x2, K, inliers)
+    return {"inv_depth": depth_from_pixel_flow(forward, mask, motion, sample["intrinsics"]), "motion": motion,
+            "support": np.array(float(inliers.sum()))}
+
+
+def base_sift(sample: Mapping[str, Any], cfg: BaselineConfig) -> dict[str, np.ndarray]:
+    g1, g2 = to_gray_u8(sample["image1"]), to_gray_u8(sample["image2"])
+    h, w = g1.shape
+    sift = cv2.SIFT_create()
+    k1, d1 = sift.detectAndCompute(g1, None)
+    k2, d2 = sift.detectAndCompute(g2, None)
+    if d1 is None or d2 is None or len(k1) < 2 or len(k2) < 2:
+        raise BaselineFailure(f"too few SIFT keypoints ({len(k1)}, {len(k2)})")
+    pairs = cv2.BFMatcher(cv2.NORM_L2).knnMatch(d1, d2, k=2)
+    good = [p[0] for p in pairs if len(p) == 2 and p[0].distance < cfg.sift_ratio * p[1].distance]
+    if len(good) < cfg.min_matches:
+        raise BaselineFailure(f"{len(good)} SIFT matches pass the ratio test (needs {cfg.min_matches})")
+    x1 = np.array([k1[m.queryIdx].pt for m in good], dtype=np.float64)
+    x2 = np.array([k2[m.trainIdx].pt for m in good], dtype=np.float64)
+    K = pixel_intrinsics(sample["intrinsics"], h, w)
+    Fm, inliers = ransac_fundamental(x1, x2, scaled_threshold(cfg.ransac_threshold_px, w), cfg.ransac_iterations,
+                                     cfg.seed, cfg.min_matches)
+    motion = motion_from_fundamental(Fm, x1, x2, K, inliers)
+    forward, backward = dense_flow(g1, g2, cfg.dis_preset), dense_flow(g2, g1, cfg.dis_preset)
+    mask = forward_backward_mask(forward, backward, scaled_threshold(cfg.fb_threshold_px, w))
+    return {"inv_depth": depth_from_pixel_flow(forward, mask, motion, sample["intrinsics"]), "motion": motion,
+            "support": np.array(float(inliers.sum()))}
+
+
+def base_mat_f(sample: Mapping[str, Any], cfg: BaselineConfig, flow: torch.Tensor) -> dict[str, np.ndarray]:
+    """``flow``: (2, h, w) normalised flow predicted by the DeMoN chain for this sample."""
+    f = flow.detach().double().cpu().numpy()
+    _, h, w = f.shape
+    flow_px = np.stack([f[0] * w, f[1] * h], -1)
+    valid = np.isfinite(flow_px).all(-1)
+    ys, xs = np.nonzero(valid)
+    if len(xs) < cfg.min_matches:
+        raise BaselineFailure(f"{len(xs)} finite flow vectors (needs {cfg.min_matches})")
+    x1 = np.stack([xs, ys], 1).astype(np.float64)
+    x2 = x1 + flow_px[ys, xs]
+    K = pixel_intrinsics(sample["intrinsics"], h, w)
+    E, mask = cv2.findEssentialMat(x1, x2, K, method=cv2.RANSAC, prob=0.999,
+                                   threshold=scaled_threshold(cfg.ransac_threshold_px, w))
+    if E is None or E.shape != (3, 3):
+        raise BaselineFailure("the 5-point RANSAC found no (unique) essential matrix")
+    inliers = mask[:, 0].astype(bool)
+    if inliers.sum() < cfg.min_matches:
+        raise BaselineFailure(f"the 5-point RANSAC kept {int(inliers.sum())} inliers (needs {cfg.min_matches})")
+    motion = pose_from_essential(E, x1, x2, K, inliers)
+    return {"inv_depth": depth_from_pixel_flow(flow_px, valid, motion, sample["intrinsics"]), "motion": motion,
+            "support": np.array(float(inliers.sum()))}
+
+
+def plane_sweep(image1: torch.Tensor, image2: torch.Tensor, intrinsics: torch.Tensor, motion: torch.Tensor,
+                hypotheses: int = 96, window: int = 7, max_disparity: float = 0.25) -> torch.Tensor:
+    """Fronto-parallel plane-sweep stereo with a known motion; returns inverse depth (H, W).
+
+    Hypotheses are uniform in inverse depth (unit-length t) between the values whose induced
+    parallax averages one pixel and ``max_disparity`` of the image size; the cost is the window-averaged absolute
+    colour difference between image 1 and image 2 warped by each hypothesis (pixels warped from
+    outside image 2 cost the most); the arg-min is refined by a parabola through its neighbours.
+    """
+    _, h, w = image1.shape
+    k, m = intrinsics[None].double(), motion[None].double()
+    at_zero = geo.flow_from_depth_motion(torch.full((1, 1, h, w), 1e-9, dtype=torch.float64), m, k)  # ~infinity
+    at_one = geo.flow_from_depth_motion(torch.ones(1, 1, h, w, dtype=torch.float64), m, k)
+    shift = (at_one - at_zero).norm(dim=1).mean().item()  # normalised flow per unit inverse depth
+    if not np.isfinite(shift) or shift < 1e-9:
+        raise BaselineFailure("the motion induces no parallax (zero baseline)")
+    xi = torch.linspace(1.0 / max(w, h) / shift, max_disparity / shift, hypotheses, dtype=torch.float64)
+    costs = []
+    for chunk in xi.split(16):
+        n = len(chunk)
+        inv = chunk.view(n, 1, 1, 1).expand(n, 1, h, w)
+        flow = geo.flow_from_depth_motion(inv, m.expand(n, 6), k.expand(n, 4)).float()
+        warped = geo.warp_image(image2[None].expand(n, -1, -1, -1).float(), flow)
+        inside = (warped != 0).any(1, keepdim=True)
+        diff = (warped - image1[None].float()).abs().mean(1, keepdim=True)
+        diff = torch.where(inside, diff, torch.ones_like(diff))
+        costs.append(F.avg_pool2d(diff, window, stride=1, padding=window // 2, count_include_pad=False)[:, 0])
+    cost = torch.cat(costs)  # (hypotheses, H, W)
+    best = cost.argmin(0)
+    lo, hi = (best - 1).clamp(min=0), (best + 1).clamp(max=hypotheses - 1)
+    c0, c1, c2 = (cost.gather(0, i[None])[0] for i in (lo, best, hi))
+    denom = c0 - 2 * c1 + c2
+    offset = torch.where((denom > 1e-9) & (lo < best) & (best < hi), 0.5 * (c0 - c2) / denom.clamp(min=1e-9),
+                         torch.zeros_like(c1)).clamp(-0.5, 0.5)
+    step = float(xi[1] - xi[0]) if hypotheses > 1 else float(xi[0])
+    return (xi[best].float() + offset * step).clamp(min=float(xi[0]))
+
+
+def base_oracle(sample: Mapping[str, Any], cfg: BaselineConfig, hires: Mapping[str, Any]) -> dict[str, np.ndarray]:
+    """``hires``: the same sample at ``oracle_scale`` times the resolution (same scene and cameras)."""
+    motion = sample["motion"].double()
+    t = motion[3:].norm()
+    if t < 1e-9:
+        raise BaselineFailure("zero-baseline pair: plane sweep has no parallax")
+    unit = torch.cat([motion[:3], motion[3:] / t])
+    inv = plane_sweep(hires["image1"], hires["image2"], hires["intrinsics"], unit, cfg.sweep_hypotheses,
+                      cfg.sweep_window, cfg.sweep_max_disparity)
+    return {"inv_depth": inv.numpy(), "motion": unit.numpy()}
