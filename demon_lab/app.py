@@ -97,6 +97,7 @@ def _train_and_evaluate(cfg: DictConfig, tracker, run_id: str) -> dict[str, Any]
     from demon_lab.baselines import summarize_baseline
     from demon_lab.config import instantiate
     from demon_lab.evaluate import evaluate_dataset, summarize
+    from demon_lab.metrics import PixelHistogram
     from demon_lab.tracking import TAG, stage_logger
     from demon_lab.train import prepare_chain
 
@@ -140,22 +141,27 @@ def _train_and_evaluate(cfg: DictConfig, tracker, run_id: str) -> dict[str, Any]
     all_rows = []
     with_refined = cfg.method == "demon" and (not cfg.train or "refine" in [s.name for s in stages])
     keep = max(int(cfg.eval.visualize), int(cfg.eval.point_clouds))
+    histograms: dict[str, dict] = {}
     with tempfile.TemporaryDirectory() as tmp:
         for entry in cfg.data.test:
             dataset = instantiate(entry)
+            histogram = PixelHistogram()
             if cfg.method == "demon":
                 rows, kept = evaluate_dataset(chain, dataset, int(cfg.iterations), cfg.oracle,
                                               int(cfg.eval.batch_size), cfg.eval.max_samples, keep=keep,
-                                              refined=with_refined)
+                                              refined=with_refined, histogram=histogram)
                 summary[dataset.name] = summarize(rows, int(cfg.iterations))
             else:
-                rows, kept = _evaluate_baseline(cfg, entry, dataset, chain, keep)
+                rows, kept = _evaluate_baseline(cfg, entry, dataset, chain, keep, histogram)
                 summary[dataset.name] = summarize_baseline(rows)
+            histograms[dataset.name] = histogram.to_dict()
             all_rows += [{"dataset": dataset.name, **r} for r in rows]
             _save_visuals(Path(tmp), dataset.name, kept, int(cfg.eval.visualize), int(cfg.eval.point_clouds))
         metrics = {f"test/{name}/{k}": v for name, values in summary.items() for k, v in values.items()}
         tracker.log_metrics(run_id, metrics)
         (Path(tmp) / "per_sample_metrics.csv").write_text(_csv(all_rows))
+        (Path(tmp) / "pixel_errors.json").write_text(json.dumps(histograms) + "\n")
+        tracker.log_artifact(run_id, Path(tmp) / "pixel_errors.json")
         tracker.log_artifact(run_id, Path(tmp) / "per_sample_metrics.csv")
         for sub in ("images", "point_clouds"):
             if (Path(tmp) / sub).is_dir():
@@ -172,7 +178,7 @@ def _train_and_evaluate(cfg: DictConfig, tracker, run_id: str) -> dict[str, Any]
     return {"summary": summary, "figures": figures}
 
 
-def _evaluate_baseline(cfg: DictConfig, entry: DictConfig, dataset, chain, keep: int):
+def _evaluate_baseline(cfg: DictConfig, entry: DictConfig, dataset, chain, keep: int, histogram):
     """A classical baseline on one test set (``base_oracle`` reads the same samples at
     ``baseline.oracle_scale`` times the resolution)."""
     from demon_lab.baselines import BaselineConfig, evaluate_baseline
@@ -183,7 +189,8 @@ def _evaluate_baseline(cfg: DictConfig, entry: DictConfig, dataset, chain, keep:
     if cfg.method == "base_oracle":
         hires = instantiate(entry, size=[int(s) * params.oracle_scale for s in cfg.data.size])
     return evaluate_baseline(cfg.method, dataset, params, chain=chain, iterations=int(cfg.iterations),
-                             hires_dataset=hires, max_samples=cfg.eval.max_samples, keep=keep)
+                             hires_dataset=hires, max_samples=cfg.eval.max_samples, keep=keep,
+                             histogram=histogram)
 
 
 def _csv(rows: list[dict[str, Any]]) -> str:

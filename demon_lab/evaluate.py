@@ -22,10 +22,12 @@ from demon_lab.nets.chain import DeMoN
 @torch.no_grad()
 def evaluate_dataset(chain: DeMoN, dataset, iterations: int, oracle: str | None = None,
                      batch_size: int = 4, max_samples: int | None = None, keep: int = 0,
-                     refined: bool = True) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
+                     refined: bool = True, histogram: metrics.PixelHistogram | None = None
+                     ) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
     """Per-sample metric rows (one per sample and iteration, ``it`` = 0..N or 'refined') and the
     raw predictions of the first ``keep`` samples (for visualisations). ``refined=False`` (the
-    refinement net was not trained) leaves out the refined rows."""
+    refinement net was not trained) leaves out the refined rows. ``histogram`` collects the
+    per-pixel errors of the final depth (refined, else the last pass)."""
     n = len(dataset) if max_samples is None else min(len(dataset), int(max_samples))
     subset = torch.utils.data.Subset(dataset, range(n))
     device = next(chain.parameters()).device
@@ -46,6 +48,8 @@ def evaluate_dataset(chain: DeMoN, dataset, iterations: int, oracle: str | None 
             if refined:
                 pred = {"inv_depth": depth, "motion": last.motion[i].cpu(), "flow": last.flow[i].cpu()}
                 rows.append({"id": batch["id"][i], "it": "refined", **metrics.evaluate_sample(pred, truth)})
+            if histogram is not None:
+                histogram.add(metrics.pixel_depth_errors({"inv_depth": depth}, truth))
             if len(kept) < keep:
                 kept.append({"id": batch["id"][i], "image1": batch["image1"][i],
                              "gt_inv_depth": batch["inv_depth"][i, 0],

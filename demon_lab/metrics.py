@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterable, Mapping, Sequence
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 import torch
@@ -252,18 +252,9 @@ def evaluate_sample(
         The depth metrics, plus the motion metrics when ``pred`` has ``motion`` and ``epe`` when
         it has ``flow``.
     """
-    gt_inv = _as_f64("gt['inv_depth']", gt["inv_depth"], (None, None))
     gt_motion = _as_f64("gt['motion']", gt["motion"], (6,))
     intrinsics = _as_f64("gt['intrinsics']", gt.get("intrinsics", geometry.DEMON_INTRINSICS), (4,))
-    if depthmask:
-        gt_inv = mask_invisible(gt_inv, gt_motion, intrinsics)
-    pred_inv = resize_nearest(_as_f64("pred['inv_depth']", pred["inv_depth"], (None, None)),
-                              gt_inv.shape)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        # Valid pixels are decided on the inverse depths (both finite and > 0), then inverted.
-        valid = np.isfinite(gt_inv) & (gt_inv > 0) & np.isfinite(pred_inv) & (pred_inv > 0)
-        pred_depth = np.where(valid, 1.0 / pred_inv, np.nan)
-        gt_depth = np.where(valid, 1.0 / gt_inv, np.nan)
+    pred_depth, gt_depth = _paired_depths(pred, gt, depthmask)
     out: dict[str, float] = dict(depth_errors(pred_depth, gt_depth, gt_motion[3:], scaling))
     if "motion" in pred and pred["motion"] is not None:
         out.update(motion_errors(pred["motion"], gt_motion))
@@ -278,6 +269,59 @@ def evaluate_sample(
                                    gt_flow.shape[1:])
         out["epe"] = flow_epe(pred_flow, gt_flow)
     return out
+
+
+def _paired_depths(pred: Mapping[str, Any], gt: Mapping[str, Any], depthmask: bool) -> tuple[np.ndarray, np.ndarray]:
+    """Predicted and GT absolute depth on the GT grid, NaN where either is invalid (the pixels
+    :func:`evaluate_sample` scores)."""
+    gt_inv = _as_f64("gt['inv_depth']", gt["inv_depth"], (None, None))
+    gt_motion = _as_f64("gt['motion']", gt["motion"], (6,))
+    intrinsics = _as_f64("gt['intrinsics']", gt.get("intrinsics", geometry.DEMON_INTRINSICS), (4,))
+    if depthmask:
+        gt_inv = mask_invisible(gt_inv, gt_motion, intrinsics)
+    pred_inv = resize_nearest(_as_f64("pred['inv_depth']", pred["inv_depth"], (None, None)),
+                              gt_inv.shape)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        # Valid pixels are decided on the inverse depths (both finite and > 0), then inverted.
+        valid = np.isfinite(gt_inv) & (gt_inv > 0) & np.isfinite(pred_inv) & (pred_inv > 0)
+        return np.where(valid, 1.0 / pred_inv, np.nan), np.where(valid, 1.0 / gt_inv, np.nan)
+
+
+def pixel_depth_errors(pred: Mapping[str, Any], gt: Mapping[str, Any], depthmask: bool = True) -> dict[str, np.ndarray]:
+    """Per-pixel ``l1_inv`` and ``l1_rel`` (1-D arrays over the scored pixels) for the error
+    histograms of the supplementary's Figure 6; their means are :func:`evaluate_sample`'s."""
+    p, g = _paired_depths(pred, gt, depthmask)
+    valid = np.isfinite(p) & np.isfinite(g)
+    p, g = p[valid], g[valid]
+    norm = float(np.linalg.norm(_as_f64("gt['motion']", gt["motion"], (6,))[3:]))
+    if not np.isclose(norm, 1.0):
+        g = g / norm
+    return {"l1_inv": np.abs(1.0 / p - 1.0 / g), "l1_rel": np.abs(p - g) / g}
+
+
+class PixelHistogram:
+    """Accumulates per-pixel depth errors into fixed bins (the last bin holds everything above
+    the range, as the supplementary's Figure 6) with exact sums for the means."""
+
+    RANGES: ClassVar[dict[str, float]] = {"l1_inv": 0.1, "l1_rel": 1.0}
+    BINS = 50
+
+    def __init__(self):
+        self.counts = {k: np.zeros(self.BINS, dtype=np.int64) for k in self.RANGES}
+        self.sums = dict.fromkeys(self.RANGES, 0.0)
+        self.below_sums = dict.fromkeys(self.RANGES, 0.0)
+
+    def add(self, errors: Mapping[str, np.ndarray]) -> None:
+        for key, top in self.RANGES.items():
+            e = np.asarray(errors[key], dtype=np.float64)
+            index = np.minimum((e / top * self.BINS).astype(np.int64), self.BINS - 1)
+            self.counts[key] += np.bincount(index, minlength=self.BINS)
+            self.sums[key] += float(e.sum())
+            self.below_sums[key] += float(e[index < self.BINS - 1].sum())
+
+    def to_dict(self) -> dict[str, Any]:
+        return {key: {"upper": top, "bins": self.BINS, "counts": self.counts[key].tolist(), "sum": self.sums[key],
+                      "sum_below_last_bin": self.below_sums[key]} for key, top in self.RANGES.items()}
 
 
 def evaluate_set(

@@ -23,11 +23,12 @@ __all__ = ["METHODS", "BaselineConfig", "BaselineFailure", "evaluate_baseline", 
 @torch.no_grad()
 def evaluate_baseline(method: str, dataset, cfg: BaselineConfig, chain=None, iterations: int = 3,
                       hires_dataset=None, max_samples: int | None = None,
-                      keep: int = 0) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
+                      keep: int = 0, histogram: metrics.PixelHistogram | None = None
+                      ) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
     """Per-sample metric rows of ``method`` on ``dataset`` and the first ``keep`` predictions.
 
     ``chain`` (a trained DeMoN) is needed by ``base_mat_f``; ``hires_dataset`` (the same samples at
-    a higher resolution) by ``base_oracle``.
+    a higher resolution) by ``base_oracle``. ``histogram`` collects per-pixel depth errors.
     """
     if method not in METHODS:
         raise ValueError(f"method: expected one of {METHODS}, got {method!r}")
@@ -55,6 +56,8 @@ def evaluate_baseline(method: str, dataset, cfg: BaselineConfig, chain=None, ite
             continue
         scores = metrics.evaluate_sample({"inv_depth": pred["inv_depth"], "motion": pred["motion"]}, truth)
         rows.append({"id": sample["id"], "it": "baseline", "failed": "", **scores})
+        if histogram is not None:
+            histogram.add(metrics.pixel_depth_errors({"inv_depth": pred["inv_depth"]}, truth))
         if len(kept) < keep:
             kept.append({"id": sample["id"], "image1": sample["image1"], "gt_inv_depth": sample["inv_depth"][0],
                          "inv_depth": torch.as_tensor(np.asarray(pred["inv_depth"], dtype=np.float32)),
