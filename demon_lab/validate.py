@@ -46,6 +46,8 @@ def _baseline(node: DictConfig) -> None:
         _positive(f"baseline.{key}", node[key])
     if node.sift_ratio >= 1:
         raise ConfigError(f"baseline.sift_ratio: expected a number in (0, 1), got {node.sift_ratio}")
+    _int("baseline.dis_finest_scale", node.dis_finest_scale, 0)
+    _int("baseline.dis_iterations", node.dis_iterations, 1)
     _int("baseline.ransac_iterations", node.ransac_iterations, 1)
     _int("baseline.max_correspondences", node.max_correspondences, 8)
     _int("baseline.min_matches", node.min_matches, 8)

@@ -165,9 +165,26 @@ def test_bad_configuration_is_one_line_before_any_work(args, message, tmp_path):
 ])
 def test_documented_configurations_compose_and_validate(overrides):
     assert check(overrides) is None
-    experiments = sorted((ROOT / "conf" / "experiment").glob("*.yaml"))
-    for path in experiments:
-        assert check([f"+experiment={path.stem}", *overrides]) is None, path.stem
+
+
+EXPERIMENTS = sorted(p.stem for p in (ROOT / "conf" / "experiment").glob("*.yaml"))
+
+
+@pytest.mark.parametrize("experiment", EXPERIMENTS)
+@pytest.mark.parametrize("scale", ["smoke", "cpu", "paper"])
+def test_every_experiment_sweep_composes_and_validates(experiment, scale):
+    """Each job of an experiment's declared sweep (hydra.sweeper.params) composes and validates."""
+    from demon_lab.__main__ import _job_overrides
+
+    args = ["-m", f"+experiment={experiment}", f"scale={scale}"]
+    with initialize_config_dir(CONF, version_base="1.3"):
+        jobs = _job_overrides(args)
+    assert len(jobs) >= 3 and {o.split("=")[0] for job in jobs for o in job} >= {"seed"}
+    assert check(args) is None
+
+
+def test_experiments_exist_for_every_study():
+    assert set(EXPERIMENTS) >= {"gt_flow_oracle", "gt_depth_motion_oracle", "iterations", "loss_weights", "baselines"}
 
 
 def test_killed_training_stage_resumes_from_its_checkpoint(tmp_path):

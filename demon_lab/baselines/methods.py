@@ -46,15 +46,17 @@ class BaselineConfig:
     """Parameters of the baselines (``conf/baseline/default.yaml``); pixel values at width 256."""
 
     dis_preset: str = "medium"
+    dis_finest_scale: int = 0
+    dis_iterations: int = 25
     fb_threshold_px: float = 1.0
     ransac_threshold_px: float = 1.0
     ransac_iterations: int = 1000
     max_correspondences: int = 4000
     sift_ratio: float = 0.8
     min_matches: int = 16
-    sweep_hypotheses: int = 96
+    sweep_hypotheses: int = 160
     sweep_window: int = 7
-    sweep_max_disparity: float = 0.25
+    sweep_max_disparity: float = 0.6
     oracle_scale: int = 2
     seed: int = 0
 
@@ -65,10 +67,15 @@ def _subsample(n: int, limit: int, seed: int) -> np.ndarray:
     return np.sort(np.random.default_rng(seed).choice(n, limit, replace=False))
 
 
+def _flows(g1: np.ndarray, g2: np.ndarray, cfg: BaselineConfig) -> tuple[np.ndarray, np.ndarray]:
+    args = (cfg.dis_preset, cfg.dis_finest_scale, cfg.dis_iterations)
+    return dense_flow(g1, g2, *args), dense_flow(g2, g1, *args)
+
+
 def base_ff(sample: Mapping[str, Any], cfg: BaselineConfig) -> dict[str, np.ndarray]:
     g1, g2 = to_gray_u8(sample["image1"]), to_gray_u8(sample["image2"])
     h, w = g1.shape
-    forward, backward = dense_flow(g1, g2, cfg.dis_preset), dense_flow(g2, g1, cfg.dis_preset)
+    forward, backward = _flows(g1, g2, cfg)
     mask = forward_backward_mask(forward, backward, scaled_threshold(cfg.fb_threshold_px, w))
     ys, xs = np.nonzero(mask)
     if len(xs) < cfg.min_matches:
@@ -102,7 +109,7 @@ def base_sift(sample: Mapping[str, Any], cfg: BaselineConfig) -> dict[str, np.nd
     Fm, inliers = ransac_fundamental(x1, x2, scaled_threshold(cfg.ransac_threshold_px, w), cfg.ransac_iterations,
                                      cfg.seed, cfg.min_matches)
     motion = motion_from_fundamental(Fm, x1, x2, K, inliers)
-    forward, backward = dense_flow(g1, g2, cfg.dis_preset), dense_flow(g2, g1, cfg.dis_preset)
+    forward, backward = _flows(g1, g2, cfg)
     mask = forward_backward_mask(forward, backward, scaled_threshold(cfg.fb_threshold_px, w))
     return {"inv_depth": depth_from_pixel_flow(forward, mask, motion, sample["intrinsics"]), "motion": motion,
             "support": np.array(float(inliers.sum()))}
@@ -133,19 +140,20 @@ def base_mat_f(sample: Mapping[str, Any], cfg: BaselineConfig, flow: torch.Tenso
 
 
 def plane_sweep(image1: torch.Tensor, image2: torch.Tensor, intrinsics: torch.Tensor, motion: torch.Tensor,
-                hypotheses: int = 96, window: int = 7, max_disparity: float = 0.25) -> torch.Tensor:
+                hypotheses: int = 160, window: int = 7, max_disparity: float = 0.6) -> torch.Tensor:
     """Fronto-parallel plane-sweep stereo with a known motion; returns inverse depth (H, W).
 
     Hypotheses are uniform in inverse depth (unit-length t) between the values whose induced
-    parallax averages one pixel and ``max_disparity`` of the image size; the cost is the window-averaged absolute
+    parallax has a median of one pixel and ``max_disparity`` of the image size; the cost is the window-averaged absolute
     colour difference between image 1 and image 2 warped by each hypothesis (pixels warped from
     outside image 2 cost the most); the arg-min is refined by a parabola through its neighbours.
     """
     _, h, w = image1.shape
     k, m = intrinsics[None].double(), motion[None].double()
-    at_zero = geo.flow_from_depth_motion(torch.full((1, 1, h, w), 1e-9, dtype=torch.float64), m, k)  # ~infinity
-    at_one = geo.flow_from_depth_motion(torch.ones(1, 1, h, w, dtype=torch.float64), m, k)
-    shift = (at_one - at_zero).norm(dim=1).mean().item()  # normalised flow per unit inverse depth
+    delta = 1e-4  # parallax is linear in small inverse depths: measure its rate there
+    at_infinity = geo.flow_from_depth_motion(torch.full((1, 1, h, w), 1e-12, dtype=torch.float64), m, k)
+    at_delta = geo.flow_from_depth_motion(torch.full((1, 1, h, w), delta, dtype=torch.float64), m, k)
+    shift = ((at_delta - at_infinity).norm(dim=1).median() / delta).item()  # normalised flow per unit xi
     if not np.isfinite(shift) or shift < 1e-9:
         raise BaselineFailure("the motion induces no parallax (zero baseline)")
     xi = torch.linspace(1.0 / max(w, h) / shift, max_disparity / shift, hypotheses, dtype=torch.float64)

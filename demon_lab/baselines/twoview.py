@@ -42,11 +42,18 @@ def to_gray_u8(image: torch.Tensor) -> np.ndarray:
     return cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)
 
 
-def dense_flow(gray1: np.ndarray, gray2: np.ndarray, preset: str = "medium") -> np.ndarray:
-    """OpenCV DIS optical flow (the stand-in for FlowFields) in pixels, (H, W, 2)."""
+def dense_flow(gray1: np.ndarray, gray2: np.ndarray, preset: str = "medium", finest_scale: int = 0,
+               iterations: int = 25) -> np.ndarray:
+    """OpenCV DIS optical flow (the stand-in for FlowFields) in pixels, (H, W, 2).
+
+    ``finest_scale`` 0 (full resolution) and more gradient-descent iterations than the preset's
+    matter on small images: at 128x96 they halve the median error on large displacements.
+    """
     presets = {"ultrafast": cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST, "fast": cv2.DISOPTICAL_FLOW_PRESET_FAST,
                "medium": cv2.DISOPTICAL_FLOW_PRESET_MEDIUM}
     dis = cv2.DISOpticalFlow_create(presets[preset])
+    dis.setFinestScale(int(finest_scale))
+    dis.setGradientDescentIterations(int(iterations))
     return dis.calc(gray1, gray2, None)
 
 
