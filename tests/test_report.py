@@ -1,0 +1,129 @@
+"""The report command: seed aggregation, paper numbers, failed/missing runs, real smoke runs."""
+
+from __future__ import annotations
+
+import csv
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import yaml
+
+from demon_lab import report
+from demon_lab.tracking import TAG, Tracker
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_cell_statistics_by_hand():
+    cell = report.Cell([1.0, 2.0, 3.0])
+    assert cell.n == 3 and cell.mean == 2.0 and cell.std == 1.0
+    assert cell.ci95 == pytest.approx(4.302653 / math.sqrt(3), rel=1e-6)  # t(0.975, 2) = 4.302653
+    assert math.isnan(report.Cell([5.0]).ci95) and math.isnan(report.Cell().mean)
+
+
+def test_paper_numbers_merge_the_rows_of_one_cell():
+    rows = report.paper_numbers()
+    ref = {"table": "2", "method": "depth-motion net", "rows": ["GT flow (depth)", "GT flow (motion)"]}
+    cells = report.paper_cells(rows, ref, "SUN3D", ["l1_inv", "sc_inv", "l1_rel", "rot_deg", "tran_deg"])
+    assert cells == {"l1_inv": 0.007, "sc_inv": 0.058, "l1_rel": 0.066, "rot_deg": 0.340, "tran_deg": 2.235}
+    it3 = report.paper_cells(rows, {"table": "3", "method": "DeMoN", "rows": ["iteration 3"]}, "SUN3D", ["epe"])
+    assert it3 == {"epe": 0.019}
+
+
+def test_every_shipped_spec_loads_and_names_known_paper_rows():
+    rows = report.paper_numbers()
+    for path in sorted(report.ABLATIONS.glob("*.yaml")):
+        spec = report.load_spec(path.stem)
+        for table in spec["tables"]:
+            assert (ROOT / "conf" / "experiment" / f"{table['experiment']}.yaml").is_file(), path.stem
+            for row in table["rows"]:
+                ref = row.get("paper")
+                if ref:
+                    datasets = {d for d in spec["datasets"].values() if d}
+                    assert any(report.paper_cells(rows, ref, d, table["columns"]) for d in datasets), (path, row)
+
+
+def _fake_store(tmp: Path) -> str:
+    """Runs with known metrics, logged through demon_lab's tracking layer: 3 seeds of one row,
+    2 of another, a FAILED run and an older duplicate that must be superseded."""
+    uri = f"sqlite:///{tmp}/mlflow.db"
+    tracker = Tracker(uri, "study", str(tmp / "artifacts"))
+
+    def add(row: str, seed: int, value: float, status: str = "FINISHED"):
+        run = tracker.start(f"{row}-{seed}", {f"{TAG}run_key": f"{row}{seed}", f"{TAG}row": row,
+                                              f"{TAG}seed": str(seed)})
+        tracker.log_metrics(run, {"test/setA/it0/l1_inv": value, "test/setA/it0/tran_deg": 10 * value})
+        if status == "FINISHED":
+            tracker.finish(run, "FINISHED")
+        else:
+            tracker.fail(run, RuntimeError("NaN loss at step 7"))
+
+    add("a", 0, 99.0)  # superseded by the newer seed-0 run below
+    for seed, value in enumerate([1.0, 2.0, 3.0]):
+        add("a", seed, value)
+    for seed, value in enumerate([10.0, 14.0]):
+        add("b", seed, value)
+    add("b", 2, 0.0, status="FAILED")
+    return uri
+
+
+def _spec(directory: Path) -> None:
+    (directory / "paper_numbers.csv").write_text((report.ABLATIONS / "paper_numbers.csv").read_text())
+    spec = {"title": "A study", "runs": [["+experiment=study"]], "seeds": [0, 1, 2],
+            "datasets": {"setA": "SUN3D"},
+            "tables": [{"name": "t", "caption": "cap", "experiment": "study", "columns": ["l1_inv", "tran_deg"],
+                        "rows": [{"label": "row a", "match": {"row": "a"}, "metrics": "it0",
+                                  "paper": {"table": "2", "method": "depth-motion net", "rows": ["no GT"]}},
+                                 {"label": "row b", "match": {"row": "b"}, "metrics": "it0"}]}]}
+    (directory / "study.yaml").write_text(yaml.safe_dump(spec))
+
+
+def test_report_aggregates_seeds_and_lists_failed_and_missing_runs(tmp_path):
+    uri = _fake_store(tmp_path)
+    _spec(tmp_path)
+    paths = report.report("study", uri, tmp_path / "reports", tmp_path)
+    with open(paths["csv"], newline="") as f:
+        rows = {(r["row"], r["metric"]): r for r in csv.DictReader(f)}
+    a, b = rows[("row a", "l1_inv")], rows[("row b", "l1_inv")]
+    assert float(a["mean"]) == 2.0 and int(a["n"]) == 3 and float(a["std"]) == 1.0
+    assert float(a["ci95"]) == pytest.approx(4.302653 / math.sqrt(3), rel=1e-6)
+    assert float(b["mean"]) == 12.0 and int(b["n"]) == 2
+    assert float(rows[("row a", "tran_deg")]["mean"]) == 20.0
+    assert float(a["paper"]) == 0.058  # Table 2, depth-motion net, no GT, SUN3D
+    md = paths["md"].read_text()
+    assert "| row a | 3 | 2.000 ± 2.484 | 20.000 ± 24.841 |" in md
+    assert "FAILED run" in md and "NaN loss at step 7" in md
+    assert "missing: t / row b: no FINISHED run for seed(s) 2" in md
+    assert "python -m demon_lab -m +experiment=study" in md
+    tex = paths["tex"].read_text()
+    assert "\\begin{tabular}" in tex and "2.000 $\\pm$ 2.484" in tex
+
+
+def test_report_of_an_unknown_spec_is_one_line(tmp_path):
+    result = subprocess.run([sys.executable, "-m", "demon_lab.report", "no_such_study"], cwd=tmp_path,
+                            capture_output=True, text=True, timeout=120)
+    assert result.returncode == 2
+    assert result.stderr.strip().startswith("error: ablation 'no_such_study'") and len(result.stderr.splitlines()) == 1
+
+
+def test_report_from_real_smoke_runs(tmp_path):
+    """A real smoke sweep of the flow-oracle experiment, then the Table 2 report from its runs."""
+    overrides = ["scale=smoke", f"cache_dir={tmp_path}/cache", "seed=0"]
+    job = subprocess.run([sys.executable, "-m", "demon_lab", "-m", "+experiment=gt_depth_motion_oracle", *overrides],
+                         cwd=tmp_path, capture_output=True, text=True, timeout=600)
+    assert job.returncode == 0, job.stderr[-2000:]
+    result = subprocess.run([sys.executable, "-m", "demon_lab.report", "table2_gt_oracles"], cwd=tmp_path,
+                            capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stderr[-2000:]
+    with open(tmp_path / "reports" / "table2_gt_oracles.csv", newline="") as f:
+        rows = [r for r in csv.DictReader(f) if r["table"] == "flow" and r["dataset"] == "synthetic_sun3d"]
+    epe = {r["row"]: r for r in rows}
+    assert int(epe["image pair only"]["n"]) == 1 and int(epe["GT depth+motion"]["n"]) == 1
+    assert math.isfinite(float(epe["GT depth+motion"]["mean"]))
+    assert float(epe["GT depth+motion"]["paper"]) == 0.005
+    md = (tmp_path / "reports" / "table2_gt_oracles.md").read_text()
+    assert "scale: smoke" in md and "missing: flow / image pair only: no FINISHED run for seed(s) 1, 2" in md
+    assert "missing: depth_motion / image pair only: no FINISHED run for seed(s) 0, 1, 2" in md
