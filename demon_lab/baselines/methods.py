@@ -51,7 +51,7 @@ class BaselineConfig:
     fb_threshold_px: float = 1.0
     ransac_threshold_px: float = 1.0
     ransac_iterations: int = 1000
-    max_correspondences: int = 4000
+    max_correspondences: int = 2000
     sift_ratio: float = 0.8
     min_matches: int = 16
     sweep_hypotheses: int = 160

@@ -83,21 +83,35 @@ def _hartley(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return np.einsum("...ij,...nj->...ni", T, homogeneous), T
 
 
-def eight_point(x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
+def eight_point(x1: np.ndarray, x2: np.ndarray, weights: np.ndarray | None = None) -> np.ndarray:
     """Normalised 8-point fundamental matrices (Hartley): x2^T F x1 = 0, rank 2.
 
     ``x1``, ``x2``: (..., N, 2) pixel points with N >= 8; batched over leading dimensions.
+    ``weights`` (N,) scale the rows of the linear system (the re-weighted refit of
+    :func:`ransac_fundamental`).
     """
     p1, T1 = _hartley(x1)
     p2, T2 = _hartley(x2)
     A = np.einsum("...ni,...nj->...nij", p2, p1).reshape(*p1.shape[:-1], 9)
-    _, _, vt = np.linalg.svd(A)
+    if weights is not None:
+        A = A * weights[..., None]
+    _, _, vt = np.linalg.svd(A, full_matrices=False)
     F = vt[..., -1, :].reshape(*A.shape[:-2], 3, 3)
     u, s, vt = np.linalg.svd(F)
     s[..., 2] = 0.0
     F = u @ (s[..., :, None] * vt)
     F = np.swapaxes(T2, -1, -2) @ F @ T1
     return F / np.maximum(np.linalg.norm(F, axis=(-2, -1), keepdims=True), 1e-12)
+
+
+def _sampson_weights(F: np.ndarray, x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
+    """1 / (gradient norm of the epipolar residual): turns the algebraic residual of the 8-point
+    system into the Sampson distance (iteratively re-weighted least squares)."""
+    h1 = np.concatenate([x1, np.ones((len(x1), 1))], 1)
+    h2 = np.concatenate([x2, np.ones((len(x2), 1))], 1)
+    Fx1, Ftx2 = h1 @ F.T, h2 @ F
+    den = Fx1[:, 0] ** 2 + Fx1[:, 1] ** 2 + Ftx2[:, 0] ** 2 + Ftx2[:, 1] ** 2
+    return 1.0 / np.sqrt(np.maximum(den, 1e-30))
 
 
 def sampson_distance(F: np.ndarray, x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
@@ -117,7 +131,9 @@ def ransac_fundamental(x1: np.ndarray, x2: np.ndarray, threshold: float, iterati
 
     Hypotheses from random 8-point samples (all evaluated at once), scored by the number of
     correspondences with Sampson distance below ``threshold`` pixels; the best is re-fitted on
-    its inliers (twice). Returns F and the inlier mask; raises BaselineFailure when fewer than
+    its inliers with the 8-point system re-weighted to approximate the Sampson error (up to three
+    times, while the support stays within 5 %; the unweighted algebraic fit costs degrees of
+    translation). Returns F and the inlier mask; raises BaselineFailure when fewer than
     ``min_inliers`` points support any hypothesis.
     """
     n = len(x1)
@@ -131,13 +147,21 @@ def ransac_fundamental(x1: np.ndarray, x2: np.ndarray, threshold: float, iterati
     best = int(np.argmax(counts))
     F_best = F[best]
     inliers = sampson_distance(F_best, x1, x2) < threshold
-    for _ in range(2):  # re-fit on the inliers while that keeps or grows the support
+    for _ in range(3):  # re-fit on the inliers, Sampson-weighted
         if inliers.sum() < min_inliers:
             break
         with np.errstate(all="ignore"):
-            F_refit = eight_point(x1[inliers], x2[inliers])
+            # Fit on the tighter half of the threshold band: chance outliers that sit within the
+            # band of their epipolar line pull an algebraic fit by degrees.
+            core = sampson_distance(F_best, x1, x2) < threshold / 2
+            fit = core if core.sum() >= max(min_inliers, inliers.sum() // 2) else inliers
+            weights = _sampson_weights(F_best, x1[fit], x2[fit])
+            weights = np.minimum(weights, 3 * np.median(weights))  # no point dominates the fit
+            F_refit = eight_point(x1[fit], x2[fit], weights / weights.max())
             refit_inliers = sampson_distance(F_refit, x1, x2) < threshold
-        if refit_inliers.sum() < inliers.sum():
+        # A least-squares fit on the inliers beats the minimal sample's even at a slightly lower
+        # count; a clearly smaller support means the refit went astray.
+        if not np.isfinite(F_refit).all() or refit_inliers.sum() < 0.95 * inliers.sum():
             break
         F_best, inliers = F_refit, refit_inliers
     if inliers.sum() < min_inliers:
