@@ -6,7 +6,8 @@ paper's dataset whose numbers stand beside it) and tables whose rows select runs
 (``match``) and read one pass's metrics (``metrics``: ``it<k>``, ``refined`` or ``""`` for the
 summary). The report reads FINISHED runs only, keeps the newest run per (row, seed), aggregates
 seeds (mean, sample std, 95 % t-interval, n) and writes ``reports/NAME.md``, ``.csv``, ``.tex``
-and ``reports/figures/NAME_*.png``. FAILED runs and seeds without a run are listed.
+and ``reports/figures/NAME_*.png``. FAILED runs (unless their job was re-run to FINISHED) and
+seeds without a run are listed.
 
 ``--run`` first executes the spec's commands (skip-if-finished makes that incremental).
 """
@@ -271,7 +272,7 @@ def write_markdown(spec, result, info, failed, paper_rows) -> str:
         for path in sorted(result.get("figures", [])):
             w(f"![{Path(path).stem}](figures/{Path(path).name})\n\n")
     w("## Runs not counted\n\n")
-    if not failed and not result["missing"]:
+    if not failed and not result["missing"] and not result.get("rerun"):
         w("None: every expected (row, seed) has a FINISHED run and no run failed.\n")
     for r in failed:
         what = ", ".join(f"{k}={r.get(k)}" for k in ("method", "oracle", "iterations")
@@ -280,6 +281,8 @@ def write_markdown(spec, result, info, failed, paper_rows) -> str:
           f"{r.tags.get(f'{TAG}error', 'no error recorded')[:300]}\n")
     for line in result["missing"]:
         w(f"- missing: {line}\n")
+    if result.get("rerun"):
+        w(f"- {result['rerun']} FAILED run(s) whose job was re-run to FINISHED are not listed\n")
     return out.getvalue()
 
 
@@ -497,7 +500,9 @@ def report(name: str, uri: str, out_dir: Path, directory: Path = ABLATIONS) -> d
     runs = fetch_runs(uri, experiments)
     result = build(spec, runs)
     paper_rows = paper_numbers(directory / "paper_numbers.csv")
-    failed = [r for r in runs if r.status == "FAILED"]
+    finished_keys = {r.get("run_key") for r in runs if r.status == "FINISHED"}
+    failed = [r for r in runs if r.status == "FAILED" and r.get("run_key") not in finished_keys]
+    result["rerun"] = sum(1 for r in runs if r.status == "FAILED" and r.get("run_key") in finished_keys)
     info = _describe(spec, runs, result["used"])
     out_dir.mkdir(parents=True, exist_ok=True)
     figures_dir = out_dir / "figures"
