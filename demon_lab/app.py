@@ -252,10 +252,11 @@ def _save_visuals(root: Path, name: str, kept: list[dict], n_images: int, n_clou
 def main_task(cfg: DictConfig) -> None:
     """Hydra task: one line on a configuration or data error, non-zero exit."""
     from demon_lab.data.sample import DataError
+    from demon_lab.stages.cache import CheckpointError
     from demon_lab.tracking import TrackingError
 
     try:
         run(cfg)
-    except (ConfigError, DataError, TrackingError) as e:
+    except (ConfigError, DataError, TrackingError, CheckpointError) as e:
         print(f"error: {e}", file=sys.stderr)
         sys.exit(2)

@@ -11,11 +11,10 @@ from collections.abc import Callable
 from typing import Any
 
 import lightning as L
-import torch
 from omegaconf import DictConfig, OmegaConf
 
 from demon_lab.nets.chain import DeMoN
-from demon_lab.stages.cache import StageDir, stage_key
+from demon_lab.stages.cache import CheckpointError, StageDir, atomic_checkpoint_io, load_checkpoint, stage_key
 from demon_lab.stages.modules import STAGE_KINDS
 
 STAGE_ORDER = ("flow1", "dm1", "flow2", "dm2", "iterative", "refine")
@@ -93,7 +92,8 @@ def train_stage(cfg: DictConfig, chain: DeMoN, stage: StageDir, logger: L.pytorc
         logger=logger if logger is not None else False, callbacks=[checkpoint],
         log_every_n_steps=int(cfg.tracking.log_every_n_steps), gradient_clip_val=float(cfg.schedule.grad_clip),
         gradient_clip_algorithm="value", enable_progress_bar=progress, enable_model_summary=False,
-        num_sanity_val_steps=0, limit_val_batches=0, deterministic="warn", benchmark=False)
+        num_sanity_val_steps=0, limit_val_batches=0, deterministic="warn", benchmark=False,
+        plugins=[atomic_checkpoint_io()])
     resume = stage.last_checkpoint if stage.last_checkpoint.is_file() else None
     start_step = _checkpoint_step(resume) if resume is not None else 0
     if resume is not None:
@@ -108,7 +108,7 @@ def train_stage(cfg: DictConfig, chain: DeMoN, stage: StageDir, logger: L.pytorc
 
 
 def _checkpoint_step(path) -> int:
-    return int(torch.load(path, map_location="cpu", weights_only=False).get("global_step", 0))
+    return int(load_checkpoint(path).get("global_step", 0))
 
 
 def _quiet_lightning() -> None:
@@ -124,7 +124,12 @@ def _quiet_lightning() -> None:
 def load_stage(chain: DeMoN, stage: StageDir) -> None:
     state = stage.load()
     for net, weights in state.items():
-        getattr(chain, net).load_state_dict(weights)
+        try:
+            getattr(chain, net).load_state_dict(weights)
+        except (AttributeError, RuntimeError) as e:
+            first = str(e).strip().splitlines()[0]
+            raise CheckpointError(f"checkpoint {stage.weights} does not fit this chain's {net} "
+                                  f"(another architecture, variant or width? {first[:160]})") from None
 
 
 def prepare_chain(cfg: DictConfig, on_stage: Callable[[StageDir, str], L.pytorch.loggers.Logger | None]

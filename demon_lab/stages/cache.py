@@ -62,9 +62,53 @@ class StageDir:
     def save(self, state: Mapping[str, Mapping[str, torch.Tensor]]) -> None:
         self.path.mkdir(parents=True, exist_ok=True)
         (self.path / "stage.json").write_text(json.dumps(self.description, indent=2, default=str) + "\n")
-        tmp = self.weights.with_suffix(f".tmp{os.getpid()}")
-        torch.save({k: dict(v) for k, v in state.items()}, tmp)
-        os.replace(tmp, self.weights)  # atomic: readers see the old state or the whole new one
+        atomic_torch_save({k: dict(v) for k, v in state.items()}, self.weights)
 
     def load(self) -> dict[str, dict[str, torch.Tensor]]:
-        return torch.load(self.weights, map_location="cpu", weights_only=True)
+        return load_checkpoint(self.weights)
+
+
+def atomic_torch_save(obj: Any, path: Path | str) -> None:
+    """``torch.save`` to a temporary file in the same folder, fsync, then rename over ``path``:
+    a kill at any moment leaves the previous file or the complete new one, never a torn one."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
+    try:
+        with open(tmp, "wb") as f:
+            torch.save(obj, f)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+
+
+class CheckpointError(RuntimeError):
+    """A stage checkpoint that cannot be used (unreadable, truncated, another architecture)."""
+
+
+def load_checkpoint(path: Path | str) -> Any:
+    """``torch.load(weights_only=True)``; any failure is one CheckpointError naming the file."""
+    try:
+        return torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as e:
+        reason = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+        raise CheckpointError(f"checkpoint {path} cannot be read ({reason[:200]}); delete it to retrain "
+                              f"that stage") from None
+
+
+def atomic_checkpoint_io():
+    """Lightning checkpoint I/O for the stage cache: atomic writes (:func:`atomic_torch_save`) and
+    ``weights_only=True`` loads (a checkpoint may hold tensors and plain containers only)."""
+    from lightning.pytorch.plugins.io import TorchCheckpointIO
+
+    class AtomicCheckpointIO(TorchCheckpointIO):
+        def save_checkpoint(self, checkpoint, path, storage_options=None):
+            atomic_torch_save(checkpoint, path)
+
+        def load_checkpoint(self, path, map_location=None, weights_only=None):
+            return load_checkpoint(path)
+
+    return AtomicCheckpointIO()
