@@ -71,7 +71,17 @@ def run(cfg: DictConfig) -> dict[str, Any]:
                   f"(experiment {cfg.experiment!r}); pass force=true to run it again")
             return {"status": "skipped", "run_id": existing, "run_key": key}
     parent = _parent_run()
-    run_id = tracker.start(f"{cfg.experiment}-{key[:8]}", job_tags(cfg, key), parent_id=parent)
+    record = _run_id_file()
+    persisted = record.read_text().strip() if record is not None and record.is_file() else None
+    run_id = next((r for r in (persisted, tracker.find_interrupted(key)) if r and tracker.resumable(r, key)), None)
+    if run_id is not None:
+        tracker.resume(run_id)
+        print(f"[demon_lab] resuming the interrupted run {run_id} (run key {key})", flush=True)
+    else:
+        run_id = tracker.start(f"{cfg.experiment}-{key[:8]}", job_tags(cfg, key), parent_id=parent)
+    if record is not None:
+        record.parent.mkdir(parents=True, exist_ok=True)
+        record.write_text(run_id + "\n")
     try:
         resolved = OmegaConf.to_yaml(cfg, resolve=True)
         tracker.log_params(run_id, flatten(OmegaConf.to_container(cfg, resolve=True)))
@@ -82,6 +92,16 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     except BaseException as e:
         tracker.fail(run_id, e)
         raise
+
+
+def _run_id_file() -> Path | None:
+    """``run_id`` in the job's (deterministic) Hydra output folder: a re-issued job finds its run."""
+    try:
+        from hydra.core.hydra_config import HydraConfig
+
+        return Path(HydraConfig.get().runtime.output_dir) / "run_id"
+    except ValueError:  # not under Hydra (tests call run() directly)
+        return None
 
 
 def _parent_run() -> str | None:
@@ -108,8 +128,10 @@ def _train_and_evaluate(cfg: DictConfig, tracker, run_id: str) -> dict[str, Any]
               flush=True)
         if status == "cached":
             return None
-        child = tracker.start(f"stage-{stage.name}", {f"{TAG}stage": stage.name, f"{TAG}stage_key": stage.key,
-                                                     f"{TAG}kind": "stage"}, parent_id=run_id)
+        child = tracker.find_interrupted(stage.key, parent_id=run_id, tag="stage_key")  # a killed stage resumes
+        if child is None:
+            child = tracker.start(f"stage-{stage.name}", {f"{TAG}stage": stage.name, f"{TAG}stage_key": stage.key,
+                                                         f"{TAG}kind": "stage"}, parent_id=run_id)
         logger = stage_logger(tracker, child, int(cfg.tracking.log_every_n_steps))
         loggers.append((child, logger))
         return logger

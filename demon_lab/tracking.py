@@ -136,6 +136,30 @@ class Tracker:
         runs = self.client.search_runs([self.experiment_id], filter_string=query, max_results=1)
         return runs[0].info.run_id if runs else None
 
+    def find_interrupted(self, key: str, parent_id: str | None = None, tag: str = "run_key") -> str | None:
+        """The newest RUNNING run whose ``demon_lab.<tag>`` is ``key`` (under ``parent_id`` if
+        given): a job (or stage) that was killed and never reached FINISHED or FAILED."""
+        query = f"tags.`{TAG}{tag}` = '{key}' and attributes.status = 'RUNNING'"
+        if parent_id:
+            query += f" and tags.`mlflow.parentRunId` = '{parent_id}'"
+        runs = self.client.search_runs([self.experiment_id], filter_string=query, max_results=1,
+                                       order_by=["attributes.start_time DESC"])
+        return runs[0].info.run_id if runs else None
+
+    def resumable(self, run_id: str, key: str) -> bool:
+        """Whether ``run_id`` exists in this experiment, has run key ``key`` and is not terminated."""
+        try:
+            run = self.client.get_run(run_id)
+        except Exception:
+            return False
+        return (run.info.experiment_id == self.experiment_id and run.info.status == "RUNNING"
+                and run.data.tags.get(f"{TAG}run_key") == key)
+
+    def resume(self, run_id: str) -> None:
+        run = self.client.get_run(run_id)
+        count = int(run.data.tags.get(f"{TAG}resumed", "0")) + 1
+        self.client.set_tag(run_id, f"{TAG}resumed", str(count))
+
     def start(self, name: str, tags: Mapping[str, str], parent_id: str | None = None) -> str:
         all_tags = {str(k): str(v) for k, v in tags.items()}
         if parent_id:

@@ -59,13 +59,13 @@ def build_chain(cfg: DictConfig) -> DeMoN:
     return DeMoN(cfg.model.variant, float(cfg.model.width), tuple(cfg.data.size))
 
 
-def build_datamodule(cfg: DictConfig, batch_size: int, samples: int):
+def build_datamodule(cfg: DictConfig, batch_size: int, samples: int, skip: int = 0):
     from demon_lab.config import instantiate
     from demon_lab.data.datamodule import DemonDataModule
 
     train = [{"weight": e.weight, "dataset": instantiate(e.dataset)} for e in cfg.data.train]
     return DemonDataModule(train=train, batch_size=batch_size, num_workers=cfg.data.num_workers,
-                           samples_per_epoch=samples, seed=cfg.seed)
+                           samples_per_epoch=samples, seed=cfg.seed, skip=skip)
 
 
 def train_stage(cfg: DictConfig, chain: DeMoN, stage: StageDir, logger: L.pytorch.loggers.Logger | None,
@@ -83,7 +83,11 @@ def train_stage(cfg: DictConfig, chain: DeMoN, stage: StageDir, logger: L.pytorc
         kwargs.update(iterations=int(spec.iterations))
     module = STAGE_KINDS[kind](chain, weights=OmegaConf.to_container(cfg.loss, resolve=True), **kwargs)
     batch = int(spec.get("batch_size") or cfg.data.batch_size)
-    datamodule = build_datamodule(cfg, batch, int(spec.steps) * batch)
+    resume = stage.last_checkpoint if stage.last_checkpoint.is_file() else None
+    start_step = _checkpoint_step(resume) if resume is not None else 0
+    # A resumed stage continues the sample sequence where the checkpoint left it: same batches,
+    # same result as an uninterrupted run (on the CPU).
+    datamodule = build_datamodule(cfg, batch, int(spec.steps) * batch, skip=start_step * batch)
     checkpoint = L.pytorch.callbacks.ModelCheckpoint(
         dirpath=stage.path, filename="step{step}", save_last=True, save_top_k=0,
         every_n_train_steps=max(1, int(cfg.scale.get("checkpoint_every", 50))), auto_insert_metric_name=False)
@@ -94,8 +98,6 @@ def train_stage(cfg: DictConfig, chain: DeMoN, stage: StageDir, logger: L.pytorc
         gradient_clip_algorithm="value", enable_progress_bar=progress, enable_model_summary=False,
         num_sanity_val_steps=0, limit_val_batches=0, deterministic="warn", benchmark=False,
         plugins=[atomic_checkpoint_io()])
-    resume = stage.last_checkpoint if stage.last_checkpoint.is_file() else None
-    start_step = _checkpoint_step(resume) if resume is not None else 0
     if resume is not None:
         print(f"[demon_lab] resuming stage {stage.name} from step {start_step} ({resume})", flush=True)
     start = time.perf_counter()

@@ -76,3 +76,56 @@ def test_a_bad_cached_stage_fails_the_job_in_one_line(tmp_path, damage):
     statuses = [r.info.status for r in client(tmp_path).search_runs(
         [client(tmp_path).get_experiment_by_name("default").experiment_id])]
     assert "RUNNING" not in statuses and statuses.count("FAILED") == 1
+
+
+def _metrics(tmp: Path) -> tuple[str, str, dict[str, float]]:
+    c = client(tmp)
+    runs = [r for r in c.search_runs([c.get_experiment_by_name("default").experiment_id])
+            if r.data.tags.get("demon_lab.kind") != "stage"]
+    assert len(runs) == 1, [r.info.status for r in runs]
+    return runs[0].info.run_id, runs[0].info.status, {k: v for k, v in runs[0].data.metrics.items()
+                                                      if k.startswith("test/")}
+
+
+@pytest.mark.parametrize("stage, steps", [("flow1", "scale.steps.flow1=300"),
+                                         ("iterative", "scale.steps.iterative=150")])
+def test_a_job_killed_mid_stage_resumes_into_its_run_with_the_uninterrupted_result(tmp_path, stage, steps):
+    """SIGKILL while a stage trains, the same command again: the job resumes the stage from its
+    last checkpoint (same batches, same iterative-net queue) into the same MLflow run, which ends
+    FINISHED with exactly the metrics and weights of an uninterrupted run."""
+    until = ["schedule.until=flow1", "iterations=0"] if stage == "flow1" else ["schedule.until=iterative"]
+    extra = [steps, *until, "scale.checkpoint_every=5", "eval.max_samples=1"]
+    (tmp_path / "a").mkdir()
+    (tmp_path / "b").mkdir()
+    clean = cli(*smoke_overrides(tmp_path / "a", *extra), cwd=tmp_path / "a")
+    assert clean.returncode == 0, clean.stderr[-2000:]
+
+    args = smoke_overrides(tmp_path / "b", *extra)
+    proc = subprocess.Popen([sys.executable, "-m", "demon_lab", *args], cwd=tmp_path / "b",
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.time() + 300
+    while time.time() < deadline and proc.poll() is None:
+        if list((tmp_path / "b" / "cache" / "stages").glob(f"{stage}-*/last.ckpt")):
+            time.sleep(0.5)
+            break
+        time.sleep(0.1)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    killed_id, status, _ = _metrics(tmp_path / "b")
+    assert status == "RUNNING"  # what a kill leaves behind
+
+    again = cli(*args, cwd=tmp_path / "b")
+    assert again.returncode == 0, again.stderr[-2000:]
+    assert f"resuming the interrupted run {killed_id}" in again.stdout
+    assert f"resuming stage {stage} from step" in again.stdout
+    run_id, status, resumed = _metrics(tmp_path / "b")
+    _, _, reference = _metrics(tmp_path / "a")
+    assert run_id == killed_id and status == "FINISHED"
+    assert resumed == reference and len(reference) > 10
+
+    def weights(root: Path) -> dict:
+        (path,) = (root / "cache" / "stages").glob(f"{stage}-*/weights.pt")
+        return load_checkpoint(path)
+
+    a, b = weights(tmp_path / "a"), weights(tmp_path / "b")
+    assert all(torch.equal(a[net][k], b[net][k]) for net in a for k in a[net])

@@ -33,13 +33,14 @@ class DemonDataModule(L.LightningDataModule):
         batch_size: int = 8,
         num_workers: int = 0,
         samples_per_epoch: int = 1000,
+        skip: int = 0,
         seed: int = 0,
     ):
         super().__init__()
         self.train_sources = [(float(e["weight"]), e["dataset"]) for e in train]
         self.val_sets, self.test_sets = list(val), list(test)
         self.batch_size, self.num_workers = int(batch_size), int(num_workers)
-        self.samples_per_epoch, self.seed = int(samples_per_epoch), int(seed)
+        self.samples_per_epoch, self.seed, self.skip = int(samples_per_epoch), int(seed), int(skip)
         self._sampler: MixtureSampler | None = None
 
     def _loader(self, dataset, **kwargs) -> DataLoader:
@@ -52,7 +53,7 @@ class DemonDataModule(L.LightningDataModule):
             raise ValueError("data.train: no training source configured")
         weights, datasets = zip(*self.train_sources)
         self._sampler = MixtureSampler([len(d) for d in datasets], weights,
-                                       self.samples_per_epoch, self.seed)
+                                       self.samples_per_epoch, self.seed, self.skip)
         return self._loader(MixtureDataset(datasets), sampler=self._sampler, drop_last=True)
 
     def val_dataloader(self) -> list[DataLoader]:

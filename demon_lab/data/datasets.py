@@ -277,9 +277,12 @@ class MixtureSampler(torch.utils.data.Sampler):
     """Draws ``num_samples`` keys per epoch: a source with probability proportional to its weight,
     then a uniform sample of it, and a draw seed for the augmentation. Deterministic in
     ``(seed, epoch)``; the epoch advances each time the sampler is iterated (once per epoch in a
-    DataLoader), or is set with :meth:`set_epoch` (for resuming)."""
+    DataLoader), or is set with :meth:`set_epoch`; ``skip`` drops the first keys of epoch 0, so a
+    stage resumed at step k with batch b (``skip = k * b``) sees exactly the keys an uninterrupted
+    run would have seen from step k on."""
 
-    def __init__(self, lengths: Sequence[int], weights: Sequence[float], num_samples: int, seed: int = 0):
+    def __init__(self, lengths: Sequence[int], weights: Sequence[float], num_samples: int, seed: int = 0,
+                 skip: int = 0):
         if len(lengths) != len(weights) or not lengths:
             raise ValueError("weights: expected one weight per source")
         w = np.asarray(weights, dtype=np.float64)
@@ -287,18 +290,23 @@ class MixtureSampler(torch.utils.data.Sampler):
             raise ValueError(f"weights: expected non-negative weights with a positive sum, got {list(w)}")
         self.lengths, self.p = list(lengths), w / w.sum()
         self.num_samples, self.seed, self.epoch = int(num_samples), int(seed), 0
+        self.skip = int(skip)  # keys of epoch 0 already consumed (a resumed stage continues the sequence)
 
     def set_epoch(self, epoch: int) -> None:
         self.epoch = int(epoch)
 
     def __len__(self) -> int:
+        # The full epoch even when skipping: Lightning counts a resumed epoch's batches from its
+        # checkpointed position, so the epoch and the stage end together after the skipped keys.
         return self.num_samples
 
     def __iter__(self):
         epoch = self.epoch
         self.epoch += 1
+        skip = self.skip if epoch == 0 else 0
         rng = np.random.default_rng([self.seed, epoch])
         sources = rng.choice(len(self.lengths), size=self.num_samples, p=self.p)
         for n, s in enumerate(sources):
             index = int(rng.integers(self.lengths[s]))
-            yield (int(s), index, epoch * self.num_samples + n)
+            if n >= skip:
+                yield (int(s), index, epoch * self.num_samples + n)

@@ -115,6 +115,23 @@ class IterativeStage(StageModule):
         self.queue += [(combined[i][0], _index(detached, i)) for i in range(min(self.queue_size, len(combined)))]
         return flow_total + dm_total, {**flow_terms, **dm_terms}
 
+    def on_save_checkpoint(self, checkpoint: dict) -> None:
+        """The queue is training state: a resumed stage continues with the same queued samples."""
+        if self.queue:
+            keys = list(self.queue[0][0])
+            checkpoint["demon_lab_queue"] = {
+                "samples": {k: torch.stack([s[k] for s, _ in self.queue]) for k in keys},
+                "predictions": {f: torch.stack([getattr(p, f) for _, p in self.queue])
+                                for f in Prediction.__dataclass_fields__}}
+
+    def on_load_checkpoint(self, checkpoint: dict) -> None:
+        saved = checkpoint.get("demon_lab_queue")
+        self.queue = []
+        if saved:
+            n = next(iter(saved["samples"].values())).shape[0]
+            preds = _stack([Prediction(**{f: v[i] for f, v in saved["predictions"].items()}) for i in range(n)])
+            self.queue = [({k: v[i] for k, v in saved["samples"].items()}, _index(preds, i)) for i in range(n)]
+
 
 def _index(p: Prediction, i: int) -> Prediction:
     return Prediction(*(getattr(p, f)[i] for f in Prediction.__dataclass_fields__))
