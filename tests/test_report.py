@@ -34,9 +34,13 @@ def test_paper_numbers_merge_the_rows_of_one_cell():
 
 
 def test_every_shipped_spec_loads_and_names_known_paper_rows():
+    from demon_lab.__main__ import check
+
     rows = report.paper_numbers()
     for path in sorted(report.ABLATIONS.glob("*.yaml")):
         spec = report.load_spec(path.stem)
+        for overrides in spec["runs"]:  # every job of the spec's commands composes and validates
+            assert check(["-m", *overrides]) is None, (path.stem, overrides)
         for table in spec["tables"]:
             assert (ROOT / "conf" / "experiment" / f"{table['experiment']}.yaml").is_file(), path.stem
             for row in table["rows"]:
@@ -122,7 +126,14 @@ def test_report_from_real_smoke_runs(tmp_path):
         rows = [r for r in csv.DictReader(f) if r["table"] == "flow" and r["dataset"] == "synthetic_sun3d"]
     epe = {r["row"]: r for r in rows}
     assert int(epe["image pair only"]["n"]) == 1 and int(epe["GT depth+motion"]["n"]) == 1
-    assert math.isfinite(float(epe["GT depth+motion"]["mean"]))
+    from mlflow.tracking import MlflowClient
+
+    c = MlflowClient(tracking_uri=f"sqlite:///{tmp_path}/mlflow.db")
+    (job_run,) = [r for r in c.search_runs([c.get_experiment_by_name("gt_depth_motion_oracle").experiment_id])
+                  if r.data.tags.get("demon_lab.kind") != "stage"]
+    logged = job_run.data.metrics
+    assert float(epe["GT depth+motion"]["mean"]) == logged["test/synthetic_sun3d/it1/epe"]
+    assert float(epe["image pair only"]["mean"]) == logged["test/synthetic_sun3d/it0/epe"]
     assert float(epe["GT depth+motion"]["paper"]) == 0.005
     md = (tmp_path / "reports" / "table2_gt_oracles.md").read_text()
     assert "scale: smoke" in md and "missing: flow / image pair only: no FINISHED run for seed(s) 1, 2" in md
