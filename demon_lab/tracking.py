@@ -40,8 +40,11 @@ def metric_name(key: str) -> str:
 def _quiet_mlflow() -> None:
     os.environ.setdefault("MLFLOW_DISABLE_TELEMETRY", "true")
     os.environ.setdefault("MLFLOW_SERVER_ENABLE_JOB_EXECUTION", "false")
+    os.environ.setdefault("MLFLOW_LOGGING_LEVEL", "ERROR")
     import logging
     import warnings
+
+    import mlflow  # noqa: F401  (it configures its loggers on import: quieten them afterwards)
 
     logging.getLogger("mlflow").setLevel(logging.ERROR)
     logging.getLogger("alembic").setLevel(logging.ERROR)
@@ -109,7 +112,11 @@ class Tracker:
         from mlflow.tracking import MlflowClient
 
         self.uri = _absolute_sqlite(uri)
-        self.client = MlflowClient(tracking_uri=self.uri)
+        try:
+            self.client = MlflowClient(tracking_uri=self.uri)
+        except Exception as e:
+            first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+            raise TrackingError(f"tracking.uri {self.uri!r}: cannot use the tracking store ({first[:200]})") from None
         self.experiment_name = experiment
         self.artifact_dir = Path(artifact_dir).resolve()
         self.experiment_id = self._ensure_experiment()

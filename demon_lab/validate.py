@@ -37,6 +37,7 @@ def _choice(key: str, value: Any, allowed: tuple) -> None:
         raise ConfigError(f"{key}: expected one of {shown}, got {value!r}")
 
 
+TRACKING_SCHEMES = ("sqlite", "http", "https", "postgresql", "mysql", "mssql", "file", "databricks")
 METHODS = ("demon", "base_ff", "base_sift", "base_mat_f", "base_oracle")
 
 
@@ -107,3 +108,7 @@ def validate(cfg: DictConfig) -> None:
     _int("eval.batch_size", cfg.eval.batch_size, 1)
     if not isinstance(cfg.tracking.uri, str) or not cfg.tracking.uri:
         raise ConfigError(f"tracking.uri: expected a URI such as sqlite:///mlflow.db, got {cfg.tracking.uri!r}")
+    scheme = cfg.tracking.uri.split("://", 1)[0].split("+", 1)[0] if "://" in cfg.tracking.uri else ""
+    if scheme not in TRACKING_SCHEMES:
+        raise ConfigError(f"tracking.uri: expected a URI with one of the schemes {', '.join(TRACKING_SCHEMES)} "
+                          f"(e.g. sqlite:///mlflow.db, http://127.0.0.1:5000), got {cfg.tracking.uri!r}")

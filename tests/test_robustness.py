@@ -129,3 +129,56 @@ def test_a_job_killed_mid_stage_resumes_into_its_run_with_the_uninterrupted_resu
 
     a, b = weights(tmp_path / "a"), weights(tmp_path / "b")
     assert all(torch.equal(a[net][k], b[net][k]) for net in a for k in a[net])
+
+
+def _pair_folder(tmp: Path, damage: str) -> Path:
+    """A copy of the shipped SUN3D pair with one defect."""
+    import shutil
+
+    import numpy as np
+
+    from tests.conftest import SUN3D_PAIR
+
+    folder = tmp / f"pair_{damage}"
+    shutil.copytree(SUN3D_PAIR, folder)
+    if damage == "corrupt_image":
+        (folder / "0000.jpg").write_bytes(b"\xff\xd8 this is not a JPEG")
+    elif damage == "nan_depth":
+        depth = np.load(folder / "0000.npy")
+        np.save(folder / "0000.npy", np.full_like(depth, np.nan))
+    elif damage == "zero_baseline":
+        poses = (folder / "poses.txt").read_text().strip().splitlines()
+        (folder / "poses.txt").write_text("\n".join([poses[0], poses[0]]) + "\n")
+    return folder
+
+
+@pytest.mark.parametrize("damage, message", [
+    ("missing", "no such file or directory"),
+    ("corrupt_image", "not a readable image"),
+    ("nan_depth", "has no valid pixel"),
+    ("zero_baseline", "zero baseline"),
+    ("corrupt_hdf5", "not a readable HDF5 file"),
+    ("tracking_typo", "tracking.uri"),
+])
+def test_bad_input_is_one_line_and_leaves_no_running_run(tmp_path, damage, message):
+    if damage == "corrupt_hdf5":
+        bad = tmp_path / "scenes.h5"
+        bad.write_bytes(b"\x89HDF\r\n\x1a\n" + b"\x00" * 64)  # an HDF5 signature and nothing else
+        data = ["data=demon_h5", f"data.path={bad}"]
+    elif damage == "missing":
+        data = ["data=pair_folder", f"data.path={tmp_path / 'no_such_folder'}"]
+    elif damage == "tracking_typo":
+        data = []
+    else:
+        data = ["data=pair_folder", f"data.path={_pair_folder(tmp_path, damage)}"]
+    args = [*smoke_overrides(tmp_path, *data), "data.size=[64,64]", "schedule.until=flow1", "iterations=0"]
+    if damage == "tracking_typo":
+        args.append("tracking.uri=sqlit:///mlflow.db")
+    result = cli(*args, cwd=tmp_path)
+    lines = result.stderr.strip().splitlines()
+    assert result.returncode != 0 and len(lines) == 1 and message in lines[0], result.stderr[-3000:]
+    assert lines[0].startswith("error: ")
+    if (tmp_path / "mlflow.db").exists():
+        c = client(tmp_path)
+        runs = [r for e in c.search_experiments() for r in c.search_runs([e.experiment_id])]
+        assert all(r.info.status != "RUNNING" for r in runs)
