@@ -549,7 +549,6 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--tracking-uri", default=os.environ.get("MLFLOW_TRACKING_URI", "sqlite:///mlflow.db"))
     parser.add_argument("--out", type=Path, default=Path("reports"))
     parser.add_argument("--ablations", type=Path, default=ABLATIONS, help=argparse.SUPPRESS)
-    parser.add_argument("overrides", nargs=argparse.REMAINDER, help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     names = sorted(p.stem for p in args.ablations.glob("*.yaml")) if args.all else list(args.names)
     if not names:
