@@ -345,6 +345,15 @@ def _per_sample_rows(run: Run) -> list[dict[str, str]]:
         return list(csv.DictReader(f))
 
 
+def _save(fig, out: Path) -> Path:
+    import matplotlib.pyplot as plt
+
+    fig.tight_layout()
+    fig.savefig(out, dpi=110)
+    plt.close(fig)
+    return out
+
+
 def figure_iterations(spec, result, paper_rows, path: Path) -> list[Path]:
     import matplotlib.pyplot as plt
 
@@ -371,11 +380,7 @@ def figure_iterations(spec, result, paper_rows, path: Path) -> list[Path]:
         ax.set_xlabel("iteration")
         ax.grid(alpha=0.3)
     axes[0][0].legend(fontsize=6)
-    fig.tight_layout()
-    out = path / f"{spec['name']}_iterations.png"
-    fig.savefig(out, dpi=110)
-    plt.close(fig)
-    return [out]
+    return [_save(fig, path / f"{spec['name']}_iterations.png")]
 
 
 def figure_pixel_histograms(spec, result, path: Path) -> list[Path]:
@@ -418,11 +423,7 @@ def figure_pixel_histograms(spec, result, path: Path) -> list[Path]:
             ax.set_title(f"{dataset}: per-pixel {LABELS[metric]} (last bin: above range)", fontsize=8)
             ax.set_ylabel("fraction of pixels")
             ax.legend(fontsize=6)
-        fig.tight_layout()
-        out = path / f"{spec['name']}_pixel_errors_{dataset}.png"
-        fig.savefig(out, dpi=110)
-        plt.close(fig)
-        outputs.append(out)
+        outputs.append(_save(fig, path / f"{spec['name']}_pixel_errors_{dataset}.png"))
     return outputs
 
 
@@ -434,11 +435,12 @@ def figure_motion_distributions(spec, result, path: Path) -> list[Path]:
     per_row = result["used"][table["name"]]
     outputs = []
     row_pass = {r["label"]: r.get("metrics", "") for r in table["rows"]}
+    tables = {run.run_id: _per_sample_rows(run) for per_seed in per_row.values() for run in per_seed.values()}
     for dataset in spec["datasets"]:
         values: dict[str, dict[str, list[float]]] = defaultdict(lambda: {"rot_deg": [], "tran_deg": []})
         for label, per_seed in per_row.items():
             for run in per_seed.values():
-                rows = [r for r in _per_sample_rows(run) if r.get("dataset") == dataset]
+                rows = [r for r in tables[run.run_id] if r.get("dataset") == dataset]
                 wanted = row_pass[label].removeprefix("it") if row_pass[label].startswith("it") else None
                 if wanted is None:  # the summary: the refined depth's motion (last pass), or a baseline's
                     passes = {r["it"] for r in rows}
@@ -462,11 +464,7 @@ def figure_motion_distributions(spec, result, path: Path) -> list[Path]:
             ax.set_title(f"{dataset}: {LABELS[metric]} per sample (last bin: above range)", fontsize=8)
             ax.set_ylabel("fraction of samples")
             ax.legend(fontsize=6)
-        fig.tight_layout()
-        out = path / f"{spec['name']}_motion_{dataset}.png"
-        fig.savefig(out, dpi=110)
-        plt.close(fig)
-        outputs.append(out)
+        outputs.append(_save(fig, path / f"{spec['name']}_motion_{dataset}.png"))
     return outputs
 
 
