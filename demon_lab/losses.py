@@ -24,8 +24,12 @@ Terms = dict[str, torch.Tensor]
 
 
 def pointwise_l2(pred: torch.Tensor, gt: torch.Tensor, eps: float = EPS) -> torch.Tensor:
-    """Mean over (batch, y, x) of sqrt(sum over channels of (pred - gt)^2 + eps); (B, C, H, W)."""
-    d = torch.nan_to_num(pred - gt.detach(), nan=0.0, posinf=0.0, neginf=0.0)
+    """Mean over (batch, y, x) of sqrt(sum over channels of (pred - gt)^2 + eps); (B, C, H, W).
+    Pixels without ground truth (non-finite ``gt``) count as zero error; a non-finite prediction
+    where there is ground truth makes the loss non-finite (the stage then stops and says so)."""
+    gt = gt.detach()
+    valid = torch.isfinite(gt)
+    d = torch.where(valid, pred - torch.where(valid, gt, torch.zeros_like(gt)), torch.zeros_like(pred))
     return torch.sqrt((d * d).sum(1) + eps).mean()
 
 

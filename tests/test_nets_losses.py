@@ -120,6 +120,19 @@ def test_pointwise_l2_hand_computed():
     assert losses.pointwise_l2(pred, gt).item() == pytest.approx(expected)
 
 
+def test_a_non_finite_prediction_is_not_hidden_by_the_ground_truth_mask():
+    """Missing ground truth is masked; a diverged net's NaN/inf where there is ground truth makes
+    the loss non-finite, so the stage stops with the step and terms instead of training on."""
+    gt = torch.tensor([[[[0.0, math.nan]], [[0.0, 0.0]]]])
+    for bad in (math.nan, math.inf):
+        pred = torch.tensor([[[[bad, 0.0]], [[0.0, 0.0]]]], requires_grad=True)
+        assert not torch.isfinite(losses.pointwise_l2(pred, gt))
+    pred = torch.tensor([[[[0.0, math.nan]], [[0.0, 0.0]]]], requires_grad=True)  # NaN where gt is missing
+    loss = losses.pointwise_l2(pred, gt)
+    loss.backward()
+    assert torch.isfinite(loss) and torch.isfinite(pred.grad).all()
+
+
 def test_vector_loss_and_confidence_target():
     pred = torch.tensor([[1.0, -2.0, 0.0]])
     assert losses.vector_loss(pred, torch.zeros(1, 3)).item() == pytest.approx(
