@@ -244,7 +244,7 @@ def _save_visuals(root: Path, name: str, kept: list[dict], n_images: int, n_clou
         h, w = gt.shape
         pred = cv2.resize(s["inv_depth"].numpy(), (w, h), interpolation=cv2.INTER_NEAREST)
         image = ((s["image1"].permute(1, 2, 0).numpy() + 0.5) * 255).clip(0, 255).astype(np.uint8)[:, :, ::-1]
-        flow = s["flow"].numpy()
+        flow = np.nan_to_num(s["flow"].numpy())  # a diverged net's NaN flow is drawn black
         mag, ang = cv2.cartToPolar(flow[0] * w, flow[1] * h)
         hsv = np.zeros((*flow.shape[1:], 3), np.uint8)
         hsv[..., 0], hsv[..., 1] = (ang * 90 / np.pi).astype(np.uint8), 255
@@ -271,14 +271,60 @@ def _save_visuals(root: Path, name: str, kept: list[dict], n_images: int, n_clou
         (root / "point_clouds" / f"{safe}.ply").write_text("\n".join(header + lines) + "\n")
 
 
-def main_task(cfg: DictConfig) -> None:
-    """Hydra task: one line on a configuration or data error, non-zero exit."""
+def _known_errors() -> tuple[type[BaseException], ...]:
     from demon_lab.data.sample import DataError
     from demon_lab.stages.cache import CheckpointError
     from demon_lab.tracking import TrackingError
+    from demon_lab.train import TrainingDiverged
 
+    return ConfigError, DataError, TrackingError, CheckpointError, TrainingDiverged
+
+
+def _multirun_job_dir() -> Path | None:
+    """The job's output folder when it runs as part of a multirun (None for a single run)."""
     try:
+        from hydra.core.hydra_config import HydraConfig
+        from hydra.types import RunMode
+
+        hydra_cfg = HydraConfig.get()
+        return Path(hydra_cfg.runtime.output_dir) if hydra_cfg.mode == RunMode.MULTIRUN else None
+    except ValueError:
+        return None
+
+
+def main_task(cfg: DictConfig) -> None:
+    """Hydra task. A single run exits non-zero with one line on a configuration, data,
+    tracking-store or checkpoint error or diverged training, and with the traceback on anything
+    else. In a multirun a failing job never stops the sweep: its run is
+    FAILED with the error recorded, it prints one line, leaves ``error.txt`` (with the traceback)
+    in its output folder, and the sweep goes on; the sweep's end lists the failures and exits
+    non-zero (:class:`demon_lab.callbacks.MultirunTracking`)."""
+    import traceback
+
+    job_dir = _multirun_job_dir()
+    marker = job_dir / "error.txt" if job_dir is not None else None
+    if marker is not None:
+        marker.unlink(missing_ok=True)
+    server = None
+    try:
+        if cfg.tracking.get("server"):
+            from demon_lab.tracking import LocalServer
+
+            server = LocalServer(cfg.tracking.server)
+            server.start()
         run(cfg)
-    except (ConfigError, DataError, TrackingError, CheckpointError) as e:
-        print(f"error: {e}", file=sys.stderr)
-        sys.exit(2)
+    except Exception as e:
+        known = isinstance(e, _known_errors())
+        if marker is None:
+            if not known:
+                raise
+            print(f"error: {e}", file=sys.stderr)
+            sys.exit(2)
+        marker.parent.mkdir(parents=True, exist_ok=True)
+        marker.write_text("".join(traceback.format_exception(e)))
+        line = str(e).strip().splitlines()[0] if str(e).strip() else ""
+        what = line if known else f"{type(e).__name__}: {line}"
+        print(f"error: {what} (traceback in {marker})", file=sys.stderr, flush=True)
+    finally:
+        if server is not None:
+            server.stop()

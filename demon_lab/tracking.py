@@ -14,13 +14,15 @@ The default store is ``sqlite:///mlflow.db`` in the working directory with artif
 
 from __future__ import annotations
 
+import contextlib
+import fcntl
 import hashlib
 import json
 import os
 import re
 import subprocess
 import time
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -112,14 +114,18 @@ class Tracker:
         from mlflow.tracking import MlflowClient
 
         self.uri = _absolute_sqlite(uri)
-        try:
-            self.client = MlflowClient(tracking_uri=self.uri)
-        except Exception as e:
-            first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
-            raise TrackingError(f"tracking.uri {self.uri!r}: cannot use the tracking store ({first[:200]})") from None
         self.experiment_name = experiment
         self.artifact_dir = Path(artifact_dir).resolve()
-        self.experiment_id = self._ensure_experiment()
+        if self.uri.startswith(("http://", "https://")):
+            check_server(self.uri)
+        with _store_lock(self.uri):  # parallel jobs must not create or migrate a fresh SQLite file at once
+            try:
+                self.client = MlflowClient(tracking_uri=self.uri)
+            except Exception as e:
+                first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+                raise TrackingError(f"tracking.uri {self.uri!r}: cannot use the tracking store "
+                                    f"({first[:200]})") from None
+            self.experiment_id = self._ensure_experiment()
 
     def _ensure_experiment(self) -> str:
         last: Exception | None = None
@@ -129,7 +135,8 @@ class Tracker:
                 if exp is not None:
                     return exp.experiment_id
                 location = None
-                if self.uri.startswith(("sqlite:", "file:")) or "://" not in self.uri:
+                local = self.uri.startswith(("sqlite:", "file:")) or "://" not in self.uri
+                if local or os.environ.get(LocalServer.ENV) == self.uri:  # readable without the server
                     location = (self.artifact_dir / self.experiment_name).as_uri()
                 return self.client.create_experiment(self.experiment_name, artifact_location=location)
             except Exception as e:
@@ -161,6 +168,22 @@ class Tracker:
             return False
         return (run.info.experiment_id == self.experiment_id and run.info.status == "RUNNING"
                 and run.data.tags.get(f"{TAG}run_key") == key)
+
+    def find_sweep(self, key: str) -> str | None:
+        """The newest parent run of the sweep with this key (:func:`demon_lab.callbacks.sweep_key`)."""
+        query = f"tags.`{TAG}sweep_key` = '{key}'"
+        runs = self.client.search_runs([self.experiment_id], filter_string=query, max_results=1,
+                                       order_by=["attributes.start_time DESC"])
+        return runs[0].info.run_id if runs else None
+
+    def reopen(self, run_id: str) -> None:
+        """Mark a terminated (or killed) run RUNNING again, counting the re-issues."""
+        self.client.update_run(run_id, status="RUNNING")
+        self.resume(run_id)
+
+    def children(self, run_id: str) -> list:
+        query = f"tags.`mlflow.parentRunId` = '{run_id}'"
+        return self.client.search_runs([self.experiment_id], filter_string=query, max_results=5000)
 
     def resume(self, run_id: str) -> None:
         run = self.client.get_run(run_id)
@@ -203,12 +226,53 @@ class Tracker:
         self.client.set_terminated(run_id, status=status)
 
     def fail(self, run_id: str, error: BaseException) -> None:
+        """FAILED, with the error as a tag and its traceback as the artifact ``error.txt``."""
+        import traceback
+
         message = f"{type(error).__name__}: {error}"
         try:
             self.client.set_tag(run_id, f"{TAG}error", message[:5000])
-            self.client.log_text(run_id, message + "\n", "error.txt")
+            self.client.log_text(run_id, "".join(traceback.format_exception(error)), "error.txt")
         finally:
             self.client.set_terminated(run_id, status="FAILED")
+
+
+@contextlib.contextmanager
+def _store_lock(uri: str) -> Iterator[None]:
+    """An exclusive file lock beside a SQLite store (``mlflow.db.lock``) while a process opens it:
+    MLflow creates and migrates a fresh database on first use, and processes doing that at the same
+    time corrupt each other's migrations. Other stores need no lock."""
+    prefix = "sqlite:///"
+    if not uri.startswith(prefix):
+        yield
+        return
+    lock = Path(uri[len(prefix):] + ".lock")
+    lock.parent.mkdir(parents=True, exist_ok=True)
+    with open(lock, "w") as handle:
+        fcntl.flock(handle, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(handle, fcntl.LOCK_UN)
+
+
+def check_server(uri: str, timeout: float = 10.0) -> None:
+    """Fail fast, before any work, if a tracking server does not answer its ``/health`` check
+    (MLflow's own client would retry for minutes, then drop the job's results)."""
+    import urllib.error
+    import urllib.request
+
+    try:
+        with urllib.request.urlopen(uri.rstrip("/") + "/health", timeout=timeout) as response:
+            if response.status == 200:
+                return
+            problem = f"HTTP {response.status}"
+    except urllib.error.HTTPError as e:
+        problem = f"HTTP {e.code}"
+    except (urllib.error.URLError, OSError) as e:
+        problem = str(getattr(e, "reason", e))
+    raise TrackingError(f"tracking.uri {uri!r}: the tracking server does not answer ({problem}); start it or "
+                        f"point tracking.uri elsewhere")
 
 
 def _absolute_sqlite(uri: str) -> str:
@@ -268,3 +332,76 @@ def stage_logger(tracker: Tracker, run_id: str, every: int):
             self.flush()
 
     return StageLogger()
+
+
+class LocalServer:
+    """``tracking=local_server``: an MLflow server on 127.0.0.1 (loopback only, never a public
+    interface) in front of a SQLite store, for the duration of one command. Parallel jobs then
+    send their metrics to one process instead of each opening the database; the server stops when
+    the command ends (atexit, even when a job failed)."""
+
+    ENV = "DEMON_LAB_LOCAL_SERVER"  # set while a server started by this command is up
+
+    def __init__(self, settings: Mapping[str, Any]):
+        self.port = int(settings["port"])
+        self.store = _absolute_sqlite(str(settings["backend_store_uri"]))
+        self.artifacts = Path(str(settings["artifacts_destination"])).resolve()
+        self.startup_timeout = float(settings.get("startup_timeout", 120))
+        self.process: subprocess.Popen | None = None
+        self.uri = f"http://127.0.0.1:{self.port}"
+
+    def start(self) -> None:
+        import atexit
+        import socket
+        import sys
+
+        if os.environ.get(self.ENV) == self.uri:
+            return  # the multirun's server is already up
+        with socket.socket() as probe:
+            if probe.connect_ex(("127.0.0.1", self.port)) == 0:
+                raise TrackingError(f"tracking.server.port {self.port}: the port is in use on 127.0.0.1; "
+                                    f"choose another (tracking.server.port=...)")
+        with _store_lock(self.store):  # create the database before the server's workers race for it
+            from mlflow.tracking import MlflowClient
+
+            MlflowClient(tracking_uri=self.store).search_experiments(max_results=1)
+        env = {**os.environ, "MLFLOW_SERVER_ENABLE_JOB_EXECUTION": "false", "MLFLOW_DISABLE_TELEMETRY": "true"}
+        command = [sys.executable, "-m", "mlflow", "server", "--host", "127.0.0.1", "--port", str(self.port),
+                   "--workers", "1", "--backend-store-uri", self.store,
+                   "--artifacts-destination", str(self.artifacts)]
+        self.process = subprocess.Popen(command, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                                        text=True, start_new_session=True)
+        atexit.register(self.stop)
+        deadline = time.time() + self.startup_timeout
+        while time.time() < deadline:
+            if self.process.poll() is not None:
+                tail = (self.process.stderr.read() if self.process.stderr else "").strip().splitlines()[-1:]
+                raise TrackingError(f"tracking=local_server: the MLflow server exited ({' '.join(tail)[:200]})")
+            try:
+                check_server(self.uri, timeout=2.0)
+                break
+            except TrackingError:
+                time.sleep(0.5)
+        else:
+            self.stop()
+            raise TrackingError(f"tracking=local_server: the MLflow server did not answer on {self.uri} "
+                                f"within {self.startup_timeout:.0f} s")
+        os.environ[self.ENV] = self.uri
+        print(f"[demon_lab] MLflow server on {self.uri} (store {self.store}); it stops with this command",
+              flush=True)
+
+    def stop(self) -> None:
+        import signal
+
+        if self.process is None:
+            return
+        if self.process.poll() is None:
+            os.killpg(self.process.pid, signal.SIGTERM)
+            try:
+                self.process.wait(timeout=20)
+            except subprocess.TimeoutExpired:
+                os.killpg(self.process.pid, signal.SIGKILL)
+                self.process.wait()
+        self.process = None  # only a server this instance started is stopped (not the multirun's)
+        if os.environ.get(self.ENV) == self.uri:
+            os.environ.pop(self.ENV, None)

@@ -22,6 +22,11 @@ TRAINED_NETS = {"flow1": ["flow1"], "dm1": ["dm1"], "flow2": ["flow2"], "dm2": [
                 "iterative": ["flow2", "dm2"], "refine": ["refine_net"]}
 
 
+class TrainingDiverged(FloatingPointError):
+    """A stage's loss became NaN or infinite: the message names the stage, the step and every
+    loss term (one line)."""
+
+
 def scheduled_stages(cfg: DictConfig) -> list[str]:
     names = list(cfg.schedule.stages)
     return names[: names.index(cfg.schedule.until) + 1]
@@ -101,7 +106,10 @@ def train_stage(cfg: DictConfig, chain: DeMoN, stage: StageDir, logger: L.pytorc
     if resume is not None:
         print(f"[demon_lab] resuming stage {stage.name} from step {start_step} ({resume})", flush=True)
     start = time.perf_counter()
-    trainer.fit(module, train_dataloaders=datamodule.train_dataloader(), ckpt_path=resume)
+    try:
+        trainer.fit(module, train_dataloaders=datamodule.train_dataloader(), ckpt_path=resume)
+    except FloatingPointError as e:
+        raise TrainingDiverged(f"stage {stage.name}: {e}") from e
     seconds = time.perf_counter() - start
     stage.save({net: getattr(chain, net).state_dict() for net in TRAINED_NETS[stage.name]})
     steps_done = int(spec.steps) - start_step

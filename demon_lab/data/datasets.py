@@ -171,6 +171,8 @@ def warm_cache(datasets: Sequence[PairDataset], processes: int | None = None) ->
     if not jobs:
         return 0
     processes = processes or os.cpu_count() or 1
+    if mp.get_start_method(allow_none=True) not in (None, "fork", "spawn", "forkserver"):
+        processes = 1  # inside a launcher's worker (joblib's loky): its children cannot spawn; jobs run in parallel
     if processes == 1:
         return sum(_render_into_cache(j) for j in jobs)
     with mp.get_context("spawn").Pool(processes) as pool:

@@ -1,0 +1,117 @@
+"""Parallel jobs and the tracking store: joblib sweeps on SQLite, concurrent writers, the local
+tracking server and an unreachable one."""
+
+from __future__ import annotations
+
+import socket
+import subprocess
+import sys
+import time
+
+from tests.test_pipeline import cli, client, smoke_overrides
+
+WRITER = """
+import sys, time
+from pathlib import Path
+from demon_lab.tracking import Tracker
+uri, worker, count, gate = sys.argv[1], int(sys.argv[2]), int(sys.argv[3]), Path(sys.argv[4])
+while not gate.exists():  # every writer opens the fresh store at the same moment
+    time.sleep(0.01)
+tracker = Tracker(uri, "stress", Path(uri[len("sqlite:///"):]).parent / "artifacts")
+run = tracker.start(f"writer-{worker}", {"demon_lab.kind": "stress"})
+for step in range(count):
+    tracker.log_metrics(run, {"value": float(worker * count + step)}, step=step)
+tracker.finish(run)
+"""
+
+
+def test_parallel_writers_on_a_fresh_sqlite_store_lose_nothing(tmp_path):
+    """N processes open a store that does not exist yet at the same moment and log M metrics each
+    through demon_lab's tracking layer: N x M values are stored, no process fails."""
+    n, m = 4, 250
+    uri = f"sqlite:///{tmp_path}/mlflow.db"
+    gate = tmp_path / "go"
+    procs = [subprocess.Popen([sys.executable, "-c", WRITER, uri, str(i), str(m), str(gate)],
+                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for i in range(n)]
+    time.sleep(3.0)  # let every interpreter import and wait at the gate
+    gate.touch()
+    outputs = [p.communicate(timeout=300) for p in procs]
+    assert all(p.returncode == 0 for p in procs), [err[-1500:] for _, err in outputs]
+    c = client(tmp_path)
+    runs = c.search_runs([c.get_experiment_by_name("stress").experiment_id])
+    assert len(runs) == n and all(r.info.status == "FINISHED" for r in runs)
+    stored = {(int(r.info.run_name.split("-")[1]), h.step): h.value
+              for r in runs for h in c.get_metric_history(r.info.run_id, "value")}
+    assert len(stored) == n * m
+    assert all(v == w * m + s for (w, s), v in stored.items())
+
+
+def test_joblib_sweep_on_the_default_sqlite_store(tmp_path):
+    """Three jobs, three at a time, on a store created by the sweep: every run FINISHED with all
+    its metrics, one parent run holding them."""
+    args = ["-m", "hydra/launcher=joblib", "hydra.launcher.n_jobs=3", *smoke_overrides(tmp_path),
+            "seed=0,1,2", "schedule.until=flow1", "iterations=0", "eval.max_samples=1"]
+    result = cli(*args, cwd=tmp_path)
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert "database is locked" not in result.stderr
+    c = client(tmp_path)
+    runs = c.search_runs([c.get_experiment_by_name("default").experiment_id])
+    (parent,) = [r for r in runs if r.data.tags.get("demon_lab.kind") == "sweep"]
+    jobs = [r for r in runs if "demon_lab.run_key" in r.data.tags]
+    assert sorted(r.data.tags["demon_lab.seed"] for r in jobs) == ["0", "1", "2"]
+    assert all(r.info.status == "FINISHED" for r in runs)
+    assert all(r.data.tags["mlflow.parentRunId"] == parent.info.run_id for r in jobs)
+    counts = {len([k for k in r.data.metrics if k.startswith("test/")]) for r in jobs}
+    assert len(counts) == 1 and counts.pop() > 20  # every job stored the same, complete set
+    stages = [r for r in runs if r.data.tags.get("demon_lab.kind") == "stage"]
+    assert len(stages) == 3 and all(c.get_metric_history(r.info.run_id, "train/loss") for r in stages)
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _listening(port: int) -> bool:
+    with socket.socket() as s:
+        return s.connect_ex(("127.0.0.1", port)) == 0
+
+
+def test_local_server_serves_the_command_on_loopback_and_stops(tmp_path):
+    port = _free_port()
+    args = [*smoke_overrides(tmp_path), "tracking=local_server", f"tracking.server.port={port}",
+            f"tracking.server.backend_store_uri=sqlite:///{tmp_path}/mlflow.db",
+            "schedule.until=flow1", "iterations=0", "eval.max_samples=1"]
+    result = cli(*args, cwd=tmp_path)
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert f"MLflow server on http://127.0.0.1:{port}" in result.stdout
+    assert not _listening(port)  # stopped with the command
+    c = client(tmp_path)  # the runs are in the SQLite store behind the server, readable without it
+    runs = c.search_runs([c.get_experiment_by_name("default").experiment_id])
+    job = [r for r in runs if "demon_lab.run_key" in r.data.tags]
+    assert len(job) == 1 and job[0].info.status == "FINISHED"
+    assert any(a.path == "config.yaml" for a in c.list_artifacts(job[0].info.run_id))
+
+
+def test_an_unreachable_tracking_server_fails_before_any_work(tmp_path):
+    port = _free_port()  # nothing listens there
+    result = cli(*smoke_overrides(tmp_path), f"tracking.uri=http://127.0.0.1:{port}", "schedule.until=flow1",
+                 "iterations=0", cwd=tmp_path)
+    lines = result.stderr.strip().splitlines()
+    assert result.returncode == 2 and len(lines) == 1, result.stderr[-3000:]
+    assert "tracking server does not answer" in lines[0] and str(port) in lines[0]
+    assert "training stage" not in result.stdout and not (tmp_path / "cache").exists()
+
+
+def test_launcher_workers_get_no_store_client():
+    """The sweep callback travels to joblib/submitit workers pickled, without its client."""
+    import pickle
+
+    from demon_lab.callbacks import MultirunTracking
+
+    callback = MultirunTracking()
+    callback.tracker, callback.parent = object(), "abc"
+    copy = pickle.loads(pickle.dumps(callback))
+    assert copy.tracker is None and copy.parent == "abc"
+
