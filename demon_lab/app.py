@@ -60,6 +60,12 @@ def format_table(summary: dict[str, dict[str, float]], iterations: int, refined:
 def run(cfg: DictConfig) -> dict[str, Any]:
     """One job. Returns {'status': 'finished'|'skipped', 'run_id': ..., 'summary': ...}."""
     validate(cfg)
+    if cfg.method == "demon" and int(cfg.trainer.devices) * int(cfg.trainer.num_nodes) > 1:
+        from demon_lab.train import global_rank, prepare_chain
+
+        if global_rank() != 0:  # a DDP worker: it trains with rank 0, which tracks and evaluates
+            prepare_chain(cfg, None, progress=False)
+            return {"status": "worker"}
     from demon_lab.tracking import Tracker, flatten, run_key
 
     key = run_key(cfg)
@@ -92,6 +98,17 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     except BaseException as e:
         tracker.fail(run_id, e)
         raise
+
+
+def _pause_point(name: str) -> None:
+    """A named point where ``DEMON_LAB_PAUSE_AT=name`` holds the job (the robustness tests kill it
+    there: in the middle of its MLflow logging)."""
+    import os
+    import time
+
+    if os.environ.get("DEMON_LAB_PAUSE_AT") == name:
+        print(f"[demon_lab] paused at {name}", flush=True)
+        time.sleep(3600)
 
 
 def _run_id_file() -> Path | None:
@@ -167,6 +184,7 @@ def _train_and_evaluate(cfg: DictConfig, tracker, run_id: str) -> dict[str, Any]
     with tempfile.TemporaryDirectory() as tmp:
         for entry in cfg.data.test:
             dataset = instantiate(entry)
+            print(f"[demon_lab] evaluating on {dataset.name} ({len(dataset)} pairs)", flush=True)
             histogram = PixelHistogram()
             if cfg.method == "demon":
                 rows, kept = evaluate_dataset(chain, dataset, int(cfg.iterations), cfg.oracle,
@@ -181,6 +199,7 @@ def _train_and_evaluate(cfg: DictConfig, tracker, run_id: str) -> dict[str, Any]
             _save_visuals(Path(tmp), dataset.name, kept, int(cfg.eval.visualize), int(cfg.eval.point_clouds))
         metrics = {f"test/{name}/{k}": v for name, values in summary.items() for k, v in values.items()}
         tracker.log_metrics(run_id, metrics)
+        _pause_point("metrics_logged")
         (Path(tmp) / "per_sample_metrics.csv").write_text(_csv(all_rows))
         (Path(tmp) / "pixel_errors.json").write_text(json.dumps(histograms) + "\n")
         tracker.log_artifact(run_id, Path(tmp) / "pixel_errors.json")

@@ -6,6 +6,7 @@ the job's MLflow run, with its loss curves.
 
 from __future__ import annotations
 
+import contextlib
 import time
 from collections.abc import Callable
 from typing import Any
@@ -25,6 +26,21 @@ TRAINED_NETS = {"flow1": ["flow1"], "dm1": ["dm1"], "flow2": ["flow2"], "dm2": [
 class TrainingDiverged(FloatingPointError):
     """A stage's loss became NaN or infinite: the message names the stage, the step and every
     loss term (one line)."""
+
+
+def world_size(cfg: DictConfig) -> int:
+    return int(cfg.trainer.devices) * int(cfg.trainer.num_nodes)
+
+
+def global_rank() -> int:
+    """This process's rank in a multi-process (DDP) job: SLURM's task id under srun/submitit, or
+    torchrun's RANK; 0 for a single process."""
+    import os
+
+    for var in ("RANK", "SLURM_PROCID"):
+        if os.environ.get(var, "").isdigit():
+            return int(os.environ[var])
+    return 0
 
 
 def scheduled_stages(cfg: DictConfig) -> list[str]:
@@ -92,12 +108,15 @@ def train_stage(cfg: DictConfig, chain: DeMoN, stage: StageDir, logger: L.pytorc
     start_step = _checkpoint_step(resume) if resume is not None else 0
     # A resumed stage continues the sample sequence where the checkpoint left it: same batches,
     # same result as an uninterrupted run (on the CPU).
-    datamodule = build_datamodule(cfg, batch, int(spec.steps) * batch, skip=start_step * batch)
+    # With DDP the global batch is the configured one: Lightning deals the sampler's sequence out to
+    # the processes, each taking batch / world samples per step.
+    datamodule = build_datamodule(cfg, batch // world_size(cfg), int(spec.steps) * batch, skip=start_step * batch)
     checkpoint = L.pytorch.callbacks.ModelCheckpoint(
         dirpath=stage.path, filename="step{step}", save_last=True, save_top_k=0,
         every_n_train_steps=max(1, int(cfg.scale.get("checkpoint_every", 50))), auto_insert_metric_name=False)
     trainer = L.Trainer(
-        max_steps=int(spec.steps), accelerator=cfg.scale.get("accelerator", "auto"), devices=1,
+        max_steps=int(spec.steps), accelerator=cfg.trainer.accelerator, devices=int(cfg.trainer.devices),
+        num_nodes=int(cfg.trainer.num_nodes), strategy="ddp" if world_size(cfg) > 1 else "auto",
         logger=logger if logger is not None else False, callbacks=[checkpoint],
         log_every_n_steps=int(cfg.tracking.log_every_n_steps), gradient_clip_val=float(cfg.schedule.grad_clip),
         gradient_clip_algorithm="value", enable_progress_bar=progress, enable_model_summary=False,
@@ -111,7 +130,8 @@ def train_stage(cfg: DictConfig, chain: DeMoN, stage: StageDir, logger: L.pytorc
     except FloatingPointError as e:
         raise TrainingDiverged(f"stage {stage.name}: {e}") from e
     seconds = time.perf_counter() - start
-    stage.save({net: getattr(chain, net).state_dict() for net in TRAINED_NETS[stage.name]})
+    if global_rank() == 0:
+        stage.save({net: getattr(chain, net).state_dict() for net in TRAINED_NETS[stage.name]})
     steps_done = int(spec.steps) - start_step
     return {"seconds": seconds, "steps_per_second": steps_done / max(seconds, 1e-9), "resumed_from_step": start_step,
             **{f"final/{k}": v for k, v in module.last_terms.items()}}
@@ -166,7 +186,8 @@ def prepare_chain(cfg: DictConfig, on_stage: Callable[[StageDir, str], L.pytorch
             print(f"[demon_lab] rendered {rendered} synthetic training scenes into the cache "
                   f"in {time.perf_counter() - start:.0f} s", flush=True)
     for stage in stage_dirs(cfg):
-        with stage.lock():
+        # Under DDP only rank 0 takes the lock (the other ranks join its training collectively).
+        with stage.lock() if global_rank() == 0 else contextlib.nullcontext():
             if stage.done():
                 if on_stage:
                     on_stage(stage, "cached")

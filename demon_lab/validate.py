@@ -106,6 +106,15 @@ def validate(cfg: DictConfig) -> None:
     if cfg.eval.max_samples is not None:
         _int("eval.max_samples", cfg.eval.max_samples, 1)
     _int("eval.batch_size", cfg.eval.batch_size, 1)
+    _choice("trainer.accelerator", cfg.trainer.accelerator, ("auto", "cpu", "gpu", "cuda", "mps"))
+    _int("trainer.devices", cfg.trainer.devices, 1)
+    _int("trainer.num_nodes", cfg.trainer.num_nodes, 1)
+    world = cfg.trainer.devices * cfg.trainer.num_nodes
+    for name in stages:
+        batch = cfg.schedule.stages[name].get("batch_size") or cfg.data.batch_size
+        if batch % world:
+            raise ConfigError(f"trainer.devices: the batch of stage {name} ({batch}) must split evenly over "
+                              f"trainer.devices x trainer.num_nodes = {world} processes")
     if not isinstance(cfg.tracking.uri, str) or not cfg.tracking.uri:
         raise ConfigError(f"tracking.uri: expected a URI such as sqlite:///mlflow.db, got {cfg.tracking.uri!r}")
     scheme = cfg.tracking.uri.split("://", 1)[0].split("+", 1)[0] if "://" in cfg.tracking.uri else ""

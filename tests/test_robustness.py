@@ -87,48 +87,127 @@ def _metrics(tmp: Path) -> tuple[str, str, dict[str, float]]:
                                                       if k.startswith("test/")}
 
 
-@pytest.mark.parametrize("stage, steps", [("flow1", "scale.steps.flow1=300"),
-                                         ("iterative", "scale.steps.iterative=150")])
-def test_a_job_killed_mid_stage_resumes_into_its_run_with_the_uninterrupted_result(tmp_path, stage, steps):
-    """SIGKILL while a stage trains, the same command again: the job resumes the stage from its
-    last checkpoint (same batches, same iterative-net queue) into the same MLflow run, which ends
-    FINISHED with exactly the metrics and weights of an uninterrupted run."""
-    until = ["schedule.until=flow1", "iterations=0"] if stage == "flow1" else ["schedule.until=iterative"]
-    extra = [steps, *until, "scale.checkpoint_every=5", "eval.max_samples=1"]
+KILL_POINTS = {
+    # name: (overrides, what to wait for: a checkpoint glob or a line the job prints)
+    "flow1 training": (["scale.steps.flow1=300", "schedule.until=flow1", "iterations=0"], "flow1-*/last.ckpt"),
+    "iterative training": (["scale.steps.iterative=150", "schedule.until=iterative"], "iterative-*/last.ckpt"),
+    "evaluation": (["schedule.until=flow1", "iterations=0"], "[demon_lab] evaluating on synthetic_sun3d"),
+    # between the test metrics and the artifacts (DEMON_LAB_PAUSE_AT holds the job there)
+    "final logging": (["schedule.until=flow1", "iterations=0"], "[demon_lab] paused at metrics_logged"),
+}
+
+
+def _kill_when(args: list[str], cwd: Path, trigger: str) -> None:
+    """Start the job and SIGKILL it when ``trigger`` (a checkpoint glob under the stage cache, or
+    text in a line of its output) appears."""
+    env = {**os.environ, "PYTHONUNBUFFERED": "1", "DEMON_LAB_PAUSE_AT": "metrics_logged"}
+    proc = subprocess.Popen([sys.executable, "-m", "demon_lab", *args], cwd=cwd, env=env, text=True,
+                            stdout=subprocess.PIPE, stderr=subprocess.DEVNULL)
+    assert proc.stdout is not None
+    if not trigger.endswith(".ckpt"):
+        for line in proc.stdout:
+            if trigger in line:
+                break
+    else:
+        deadline = time.time() + 300
+        while time.time() < deadline and proc.poll() is None:
+            if list((cwd / "cache" / "stages").glob(trigger)):
+                time.sleep(0.5)
+                break
+            time.sleep(0.1)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    proc.stdout.close()
+
+
+@pytest.mark.parametrize("point", list(KILL_POINTS))
+def test_a_killed_job_resumes_into_its_run_with_the_uninterrupted_result(tmp_path, point):
+    """SIGKILL at a point of the job (a stage's training, evaluation, the final logging), the same
+    command again: the job resumes (a stage from its last checkpoint, with the same batches and
+    the same iterative-net queue) into the same MLflow run, which ends FINISHED with exactly the
+    metrics and weights of an uninterrupted run."""
+    overrides, trigger = KILL_POINTS[point]
+    extra = [*overrides, "scale.checkpoint_every=5", "eval.max_samples=1"]
     (tmp_path / "a").mkdir()
     (tmp_path / "b").mkdir()
     clean = cli(*smoke_overrides(tmp_path / "a", *extra), cwd=tmp_path / "a")
     assert clean.returncode == 0, clean.stderr[-2000:]
 
     args = smoke_overrides(tmp_path / "b", *extra)
-    proc = subprocess.Popen([sys.executable, "-m", "demon_lab", *args], cwd=tmp_path / "b",
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    deadline = time.time() + 300
-    while time.time() < deadline and proc.poll() is None:
-        if list((tmp_path / "b" / "cache" / "stages").glob(f"{stage}-*/last.ckpt")):
-            time.sleep(0.5)
-            break
-        time.sleep(0.1)
-    proc.send_signal(signal.SIGKILL)
-    proc.wait()
+    _kill_when(args, tmp_path / "b", trigger)
     killed_id, status, _ = _metrics(tmp_path / "b")
     assert status == "RUNNING"  # what a kill leaves behind
 
     again = cli(*args, cwd=tmp_path / "b")
     assert again.returncode == 0, again.stderr[-2000:]
     assert f"resuming the interrupted run {killed_id}" in again.stdout
-    assert f"resuming stage {stage} from step" in again.stdout
+    stage = trigger.split("-")[0] if trigger.endswith(".ckpt") else None
+    if stage:
+        assert f"resuming stage {stage} from step" in again.stdout
     run_id, status, resumed = _metrics(tmp_path / "b")
     _, _, reference = _metrics(tmp_path / "a")
     assert run_id == killed_id and status == "FINISHED"
     assert resumed == reference and len(reference) > 10
 
     def weights(root: Path) -> dict:
-        (path,) = (root / "cache" / "stages").glob(f"{stage}-*/weights.pt")
-        return load_checkpoint(path)
+        stages = (root / "cache" / "stages").glob("*/weights.pt")
+        return {p.parent.name.split("-")[0]: load_checkpoint(p) for p in stages}
 
     a, b = weights(tmp_path / "a"), weights(tmp_path / "b")
-    assert all(torch.equal(a[net][k], b[net][k]) for net in a for k in a[net])
+    assert a.keys() == b.keys()
+    assert all(torch.equal(a[s][net][k], b[s][net][k]) for s in a for net in a[s] for k in a[s][net])
+
+
+SWEEP = ["schedule.until=flow1", "iterations=0", "eval.max_samples=1"]
+
+
+def _jobs_and_parents(tmp: Path):
+    c = client(tmp)
+    runs = c.search_runs([c.get_experiment_by_name("default").experiment_id])
+    return ([r for r in runs if "demon_lab.run_key" in r.data.tags],
+            [r for r in runs if r.data.tags.get("demon_lab.kind") == "sweep"])
+
+
+def test_a_failing_job_does_not_stop_the_sweep(tmp_path):
+    """A job whose loss turns NaN (learning rate 1e30): one line naming the stage, step and terms,
+    its run FAILED with the error and traceback, the other job still runs; the sweep exits
+    non-zero, names the failed job and its parent run is FAILED."""
+    args = ["-m", *smoke_overrides(tmp_path, *SWEEP), "scale.steps.flow1=4", "schedule.stages.flow1.lr=1e30,2.5e-4"]
+    result = cli(*args, cwd=tmp_path)
+    assert result.returncode == 1
+    errors = [line for line in result.stderr.splitlines() if line.startswith("error: ")]
+    assert len(errors) == 2 and "Traceback" not in result.stderr, result.stderr[-3000:]
+    assert "stage flow1: non-finite loss at step" in errors[0] and "flow2=nan" in errors[0]
+    assert "1 job(s) of the sweep failed" in errors[1] and "lr=1e+30" in errors[1]
+    jobs, (parent,) = _jobs_and_parents(tmp_path)
+    by_status = {r.info.status: r for r in jobs}
+    assert sorted(by_status) == ["FAILED", "FINISHED"] and len(jobs) == 2
+    failed = by_status["FAILED"]
+    assert "non-finite loss" in failed.data.tags["demon_lab.error"]
+    assert failed.data.params["schedule.stages.flow1.lr"] == "1e+30"
+    text = Path(client(tmp_path).download_artifacts(failed.info.run_id, "error.txt")).read_text()
+    assert "Traceback" in text and "TrainingDiverged" in text
+    assert parent.info.status == "FAILED"
+    assert all(r.data.tags["mlflow.parentRunId"] == parent.info.run_id for r in jobs)
+
+
+def test_a_killed_sweep_reissued_completes_only_the_missing_jobs(tmp_path):
+    """SIGKILL a three-job sweep after its first job finished, issue it again: the finished job is
+    skipped, the interrupted one resumes into its run, the third runs; three job runs in all, all
+    FINISHED and all children of the one parent run."""
+    args = ["-m", *smoke_overrides(tmp_path, *SWEEP), "seed=0,1,2"]
+    _kill_when(args, tmp_path, "[HYDRA] \t#1 : ")  # the first job is FINISHED, the second starts
+    jobs, parents = _jobs_and_parents(tmp_path)
+    assert len(parents) == 1 and [r.info.status for r in jobs].count("FINISHED") <= 1
+
+    again = cli(*args, cwd=tmp_path)
+    assert again.returncode == 0, again.stderr[-3000:]
+    assert f"continuing the sweep run {parents[0].info.run_id}" in again.stdout
+    assert again.stdout.count("skipped: run key") == 1
+    jobs, (parent,) = _jobs_and_parents(tmp_path)
+    assert sorted(r.data.tags["demon_lab.seed"] for r in jobs) == ["0", "1", "2"]
+    assert all(r.info.status == "FINISHED" for r in jobs) and parent.info.status == "FINISHED"
+    assert all(r.data.tags["mlflow.parentRunId"] == parent.info.run_id for r in jobs)
 
 
 def _pair_folder(tmp: Path, damage: str) -> Path:
