@@ -100,7 +100,9 @@ KILL_POINTS = {
 def _kill_when(args: list[str], cwd: Path, trigger: str) -> None:
     """Start the job and SIGKILL it when ``trigger`` (a checkpoint glob under the stage cache, or
     text in a line of its output) appears."""
-    env = {**os.environ, "PYTHONUNBUFFERED": "1", "DEMON_LAB_PAUSE_AT": "metrics_logged"}
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    if trigger.endswith("paused at metrics_logged"):
+        env["DEMON_LAB_PAUSE_AT"] = "metrics_logged"
     proc = subprocess.Popen([sys.executable, "-m", "demon_lab", *args], cwd=cwd, env=env, text=True,
                             stdout=subprocess.PIPE, stderr=subprocess.DEVNULL)
     assert proc.stdout is not None
@@ -261,3 +263,15 @@ def test_bad_input_is_one_line_and_leaves_no_running_run(tmp_path, damage, messa
         c = client(tmp_path)
         runs = [r for e in c.search_experiments() for r in c.search_runs([e.experiment_id])]
         assert all(r.info.status != "RUNNING" for r in runs)
+
+
+def test_the_same_config_and_seed_give_identical_metrics_on_cpu(tmp_path):
+    """Two independent runs (own caches and stores) of the same job: every final metric equal."""
+    extra = ["schedule.until=dm1", "iterations=0", "eval.max_samples=2"]
+    for name in ("a", "b"):
+        (tmp_path / name).mkdir()
+        result = cli(*smoke_overrides(tmp_path / name, *extra), cwd=tmp_path / name)
+        assert result.returncode == 0, result.stderr[-2000:]
+    _, _, a = _metrics(tmp_path / "a")
+    _, _, b = _metrics(tmp_path / "b")
+    assert len(a) > 20 and a == b
