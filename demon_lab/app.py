@@ -60,10 +60,10 @@ def format_table(summary: dict[str, dict[str, float]], iterations: int, refined:
 def run(cfg: DictConfig) -> dict[str, Any]:
     """One job. Returns {'status': 'finished'|'skipped', 'run_id': ..., 'summary': ...}."""
     validate(cfg)
-    if cfg.method == "demon" and int(cfg.trainer.devices) * int(cfg.trainer.num_nodes) > 1:
-        from demon_lab.train import global_rank, prepare_chain
+    if cfg.method == "demon":
+        from demon_lab.train import global_rank, prepare_chain, world_size
 
-        if global_rank() != 0:  # a DDP worker: it trains with rank 0, which tracks and evaluates
+        if world_size(cfg) > 1 and global_rank() != 0:  # a DDP worker: trains; rank 0 tracks and evaluates
             prepare_chain(cfg, None, progress=False)
             return {"status": "worker"}
     from demon_lab.tracking import Tracker, flatten, run_key

@@ -15,7 +15,6 @@ The default store is ``sqlite:///mlflow.db`` in the working directory with artif
 from __future__ import annotations
 
 import contextlib
-import fcntl
 import hashlib
 import json
 import os
@@ -27,6 +26,8 @@ from pathlib import Path
 from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
+
+from demon_lab.filelock import file_lock
 
 TAG = "demon_lab."
 # Config keys that do not change what a job computes (so they are not part of its run key).
@@ -246,14 +247,8 @@ def _store_lock(uri: str) -> Iterator[None]:
     if not uri.startswith(prefix):
         yield
         return
-    lock = Path(uri[len(prefix):] + ".lock")
-    lock.parent.mkdir(parents=True, exist_ok=True)
-    with open(lock, "w") as handle:
-        fcntl.flock(handle, fcntl.LOCK_EX)
-        try:
-            yield
-        finally:
-            fcntl.flock(handle, fcntl.LOCK_UN)
+    with file_lock(uri[len(prefix):] + ".lock"):
+        yield
 
 
 def check_server(uri: str, timeout: float = 10.0) -> None:

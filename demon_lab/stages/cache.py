@@ -14,7 +14,6 @@ Layout: ``<cache>/stages/<stage>-<key>/`` with ``last.ckpt`` (Lightning, for res
 from __future__ import annotations
 
 import contextlib
-import fcntl
 import hashlib
 import json
 import os
@@ -23,6 +22,8 @@ from pathlib import Path
 from typing import Any
 
 import torch
+
+from demon_lab.filelock import file_lock
 
 CODE_VERSION = 2  # bump when training code changes what a stage produces
 
@@ -52,12 +53,8 @@ class StageDir:
     def lock(self) -> Iterator[None]:
         """Exclusive lock: a second job needing this stage waits, then finds it done."""
         self.path.mkdir(parents=True, exist_ok=True)
-        with open(self.path.parent / f"{self.path.name}.lock", "w") as handle:
-            fcntl.flock(handle, fcntl.LOCK_EX)
-            try:
-                yield
-            finally:
-                fcntl.flock(handle, fcntl.LOCK_UN)
+        with file_lock(self.path.parent / f"{self.path.name}.lock"):
+            yield
 
     def save(self, state: Mapping[str, Mapping[str, torch.Tensor]]) -> None:
         self.path.mkdir(parents=True, exist_ok=True)
