@@ -49,6 +49,7 @@ def check(args: list[str]) -> str | None:
     from omegaconf.errors import OmegaConfBaseException
 
     from demon_lab.config import ConfigError
+    from demon_lab.train import processes_launched_outside, world_size
     from demon_lab.validate import validate
 
     with initialize_config_dir(CONF, version_base="1.3"):
@@ -56,9 +57,18 @@ def check(args: list[str]) -> str | None:
             jobs = _job_overrides(args)
         except (HydraException, OmegaConfBaseException) as e:
             return str(e).splitlines()[0]
+        multirun = any(a in ("-m", "--multirun") for a in args)
+        launcher = next((a.split("=", 1)[1] for a in args if a.lstrip("+").startswith("hydra/launcher=")), "basic")
         for overrides in jobs:
             try:
-                validate(compose("config", overrides=overrides))
+                cfg = compose("config", overrides=overrides)
+                validate(cfg)
+                if multirun and launcher != "slurm_ddp" and world_size(cfg) > 1 and not processes_launched_outside():
+                    # Lightning's launcher starts each extra process by re-running the command line:
+                    # under -m that would re-run the whole sweep
+                    raise ConfigError(f"trainer.devices x trainer.num_nodes = {world_size(cfg)} in a sweep with "
+                                      f"hydra/launcher={launcher}: use hydra/launcher=slurm_ddp (or torchrun), "
+                                      f"or one device per job")
             except ConfigError as e:
                 return str(e)
             except (HydraException, OmegaConfBaseException) as e:

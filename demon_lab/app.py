@@ -63,7 +63,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     if cfg.method == "demon":
         from demon_lab.train import global_rank, prepare_chain, world_size
 
-        if world_size(cfg) > 1 and global_rank() != 0:  # a DDP worker: trains; rank 0 tracks and evaluates
+        if world_size(cfg) > 1 and global_rank(cfg) != 0:  # a DDP worker: trains; rank 0 tracks and evaluates
             prepare_chain(cfg, None, progress=False)
             return {"status": "worker"}
     from demon_lab.tracking import Tracker, flatten, run_key
@@ -326,7 +326,9 @@ def main_task(cfg: DictConfig) -> None:
         marker.unlink(missing_ok=True)
     server = None
     try:
-        if cfg.tracking.get("server"):
+        from demon_lab.train import global_rank
+
+        if cfg.tracking.get("server") and global_rank(cfg) == 0:  # DDP workers only train
             from demon_lab.tracking import LocalServer
 
             server = LocalServer(cfg.tracking.server)

@@ -32,15 +32,26 @@ def world_size(cfg: DictConfig) -> int:
     return int(cfg.trainer.devices) * int(cfg.trainer.num_nodes)
 
 
-def global_rank() -> int:
-    """This process's rank in a multi-process (DDP) job: SLURM's task id under srun/submitit, or
-    torchrun's RANK; 0 for a single process."""
+def global_rank(cfg: DictConfig) -> int:
+    """This process's rank in a multi-process (DDP) job: torchrun's RANK, SLURM's task id under
+    srun/submitit, or, in a process that Lightning's launcher started for a local multi-device run,
+    NODE_RANK x devices + LOCAL_RANK; 0 for a single process."""
     import os
 
     for var in ("RANK", "SLURM_PROCID"):
         if os.environ.get(var, "").isdigit():
             return int(os.environ[var])
+    if os.environ.get("LOCAL_RANK", "").isdigit():
+        node = os.environ.get("NODE_RANK", "0")
+        return (int(node) if node.isdigit() else 0) * int(cfg.trainer.devices) + int(os.environ["LOCAL_RANK"])
     return 0
+
+
+def processes_launched_outside() -> bool:
+    """True when torchrun or SLURM started this job's processes (Lightning then spawns none)."""
+    import os
+
+    return any(os.environ.get(var, "").isdigit() for var in ("RANK", "SLURM_PROCID", "LOCAL_RANK"))
 
 
 def scheduled_stages(cfg: DictConfig) -> list[str]:
@@ -81,12 +92,15 @@ def build_chain(cfg: DictConfig) -> DeMoN:
 
 
 def build_datamodule(cfg: DictConfig, batch_size: int, samples: int, skip: int = 0):
+    """Training data for ``samples`` draws in batches of ``batch_size`` (global: under DDP each
+    process loads its share of every batch)."""
     from demon_lab.config import instantiate
     from demon_lab.data.datamodule import DemonDataModule
 
     train = [{"weight": e.weight, "dataset": instantiate(e.dataset)} for e in cfg.data.train]
-    return DemonDataModule(train=train, batch_size=batch_size, num_workers=cfg.data.num_workers,
-                           samples_per_epoch=samples, seed=cfg.seed, skip=skip)
+    world = world_size(cfg)
+    return DemonDataModule(train=train, batch_size=batch_size // world, num_workers=cfg.data.num_workers,
+                           samples_per_epoch=samples, seed=cfg.seed, skip=skip, rank=global_rank(cfg), world=world)
 
 
 def train_stage(cfg: DictConfig, chain: DeMoN, stage: StageDir, logger: L.pytorch.loggers.Logger | None,
@@ -108,9 +122,9 @@ def train_stage(cfg: DictConfig, chain: DeMoN, stage: StageDir, logger: L.pytorc
     start_step = _checkpoint_step(resume) if resume is not None else 0
     # A resumed stage continues the sample sequence where the checkpoint left it: same batches,
     # same result as an uninterrupted run (on the CPU).
-    # With DDP the global batch is the configured one: Lightning deals the sampler's sequence out to
-    # the processes, each taking batch / world samples per step.
-    datamodule = build_datamodule(cfg, batch // world_size(cfg), int(spec.steps) * batch, skip=start_step * batch)
+    # With DDP the global batch is the configured one, each process taking its slice of every batch
+    # (demon_lab's sampler deals them, not Lightning's, which would reshuffle the sequence).
+    datamodule = build_datamodule(cfg, batch, int(spec.steps) * batch, skip=start_step * batch)
     checkpoint = L.pytorch.callbacks.ModelCheckpoint(
         dirpath=stage.path, filename="step{step}", save_last=True, save_top_k=0,
         every_n_train_steps=max(1, int(cfg.scale.get("checkpoint_every", 50))), auto_insert_metric_name=False)
@@ -121,6 +135,7 @@ def train_stage(cfg: DictConfig, chain: DeMoN, stage: StageDir, logger: L.pytorc
         log_every_n_steps=int(cfg.tracking.log_every_n_steps), gradient_clip_val=float(cfg.schedule.grad_clip),
         gradient_clip_algorithm="value", enable_progress_bar=progress, enable_model_summary=False,
         num_sanity_val_steps=0, limit_val_batches=0, deterministic="warn", benchmark=False,
+        use_distributed_sampler=False,
         plugins=[atomic_checkpoint_io()])
     if resume is not None:
         print(f"[demon_lab] resuming stage {stage.name} from step {start_step} ({resume})", flush=True)
@@ -130,7 +145,7 @@ def train_stage(cfg: DictConfig, chain: DeMoN, stage: StageDir, logger: L.pytorc
     except FloatingPointError as e:
         raise TrainingDiverged(f"stage {stage.name}: {e}") from e
     seconds = time.perf_counter() - start
-    if global_rank() == 0:
+    if global_rank(cfg) == 0:
         stage.save({net: getattr(chain, net).state_dict() for net in TRAINED_NETS[stage.name]})
     steps_done = int(spec.steps) - start_step
     return {"seconds": seconds, "steps_per_second": steps_done / max(seconds, 1e-9), "resumed_from_step": start_step,
@@ -187,7 +202,7 @@ def prepare_chain(cfg: DictConfig, on_stage: Callable[[StageDir, str], L.pytorch
                   f"in {time.perf_counter() - start:.0f} s", flush=True)
     for stage in stage_dirs(cfg):
         # Under DDP only rank 0 takes the lock (the other ranks join its training collectively).
-        with stage.lock() if global_rank() == 0 else contextlib.nullcontext():
+        with stage.lock() if global_rank(cfg) == 0 else contextlib.nullcontext():
             if stage.done():
                 if on_stage:
                     on_stage(stage, "cached")

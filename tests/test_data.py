@@ -438,6 +438,21 @@ def test_mixture_sampler_follows_weights_and_is_deterministic():
     assert len({d for _, _, d in first + second}) == 8000  # every draw has its own seed
 
 
+@pytest.mark.parametrize("skip", [0, 24])
+def test_mixture_sampler_shards_every_batch_across_data_parallel_processes(skip):
+    """Three processes with 4 samples each per step see, together, the 12-sample batches of one
+    process, in order, also when a resumed stage skips the keys it already consumed."""
+    args = ([10, 1000], [3.0, 1.0], 120, 5, skip)
+    batches = lambda keys, b: [keys[i:i + b] for i in range(0, len(keys), b)]  # noqa: E731
+    whole = batches(list(MixtureSampler(*args)), 12)
+    shards = [MixtureSampler(*args, rank=r, world=3, batch=4) for r in range(3)]
+    assert all(len(s) == 40 for s in shards)
+    parts = [batches(list(s), 4) for s in shards]
+    assert [[key for p in parts for key in p[k]] for k in range(len(whole))] == whole
+    with pytest.raises(ValueError, match="rank 3 of a world of 3"):
+        MixtureSampler(*args, rank=3, world=3, batch=4)
+
+
 def test_datamodule_batches_a_mix(tmp_path):
     from demon_lab.data.datamodule import DemonDataModule
 

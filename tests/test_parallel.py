@@ -115,3 +115,39 @@ def test_launcher_workers_get_no_store_client():
     copy = pickle.loads(pickle.dumps(callback))
     assert copy.tracker is None and copy.parent == "abc"
 
+
+
+def test_two_process_ddp_on_the_cpu_trains_like_one_process(tmp_path):
+    """``trainer.devices=2`` on the CPU (gloo): Lightning starts the second process by re-running
+    the command; rank 1 only trains, rank 0 tracks, saves and evaluates. Each process takes half of
+    every batch and gradients are averaged, so the stage's weights equal a one-process run's."""
+    import torch
+
+    common = ["schedule.until=flow1", "iterations=0", "eval.max_samples=1", "trainer.accelerator=cpu",
+              "scale.steps.flow1=4"]
+    weights = {}
+    for devices in (1, 2):
+        tmp = tmp_path / f"devices{devices}"
+        tmp.mkdir()
+        result = cli(*smoke_overrides(tmp), *common, f"trainer.devices={devices}", cwd=tmp)
+        assert result.returncode == 0, result.stderr[-3000:]
+        assert result.stdout.count("[demon_lab] results") == 1  # rank 0 alone evaluates and reports
+        c = client(tmp)
+        runs = c.search_runs([c.get_experiment_by_name("default").experiment_id])
+        jobs = [r for r in runs if "demon_lab.run_key" in r.data.tags]
+        assert len(jobs) == 1 and all(r.info.status == "FINISHED" for r in runs)
+        (saved,) = (tmp / "cache" / "stages").glob("flow1-*/weights.pt")
+        weights[devices] = torch.load(saved, weights_only=True)["flow1"]
+    assert weights[1].keys() == weights[2].keys()
+    for name, value in weights[1].items():
+        torch.testing.assert_close(weights[2][name], value, rtol=1e-4, atol=1e-5, msg=name)
+
+
+def test_a_local_sweep_refuses_several_devices_per_job(tmp_path):
+    """Lightning's launcher would re-run the whole sweep in each extra process: refused before any work."""
+    result = cli("-m", *smoke_overrides(tmp_path), "seed=0,1", "trainer.devices=2", cwd=tmp_path)
+    assert result.returncode == 2
+    assert result.stderr.strip().splitlines() == [
+        "error: trainer.devices x trainer.num_nodes = 2 in a sweep with hydra/launcher=basic: use "
+        "hydra/launcher=slurm_ddp (or torchrun), or one device per job"]
+    assert not (tmp_path / "mlflow.db").exists()

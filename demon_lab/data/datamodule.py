@@ -35,12 +35,15 @@ class DemonDataModule(L.LightningDataModule):
         samples_per_epoch: int = 1000,
         skip: int = 0,
         seed: int = 0,
+        rank: int = 0,
+        world: int = 1,
     ):
         super().__init__()
         self.train_sources = [(float(e["weight"]), e["dataset"]) for e in train]
         self.val_sets, self.test_sets = list(val), list(test)
         self.batch_size, self.num_workers = int(batch_size), int(num_workers)
         self.samples_per_epoch, self.seed, self.skip = int(samples_per_epoch), int(seed), int(skip)
+        self.rank, self.world = int(rank), int(world)  # data-parallel: this process's share of each batch
         self._sampler: MixtureSampler | None = None
 
     def _loader(self, dataset, **kwargs) -> DataLoader:
@@ -53,7 +56,8 @@ class DemonDataModule(L.LightningDataModule):
             raise ValueError("data.train: no training source configured")
         weights, datasets = zip(*self.train_sources)
         self._sampler = MixtureSampler([len(d) for d in datasets], weights,
-                                       self.samples_per_epoch, self.seed, self.skip)
+                                       self.samples_per_epoch, self.seed, self.skip, self.rank, self.world,
+                                       self.batch_size)
         return self._loader(MixtureDataset(datasets), sampler=self._sampler, drop_last=True)
 
     def val_dataloader(self) -> list[DataLoader]:

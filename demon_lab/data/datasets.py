@@ -281,10 +281,15 @@ class MixtureSampler(torch.utils.data.Sampler):
     ``(seed, epoch)``; the epoch advances each time the sampler is iterated (once per epoch in a
     DataLoader), or is set with :meth:`set_epoch`; ``skip`` drops the first keys of epoch 0, so a
     stage resumed at step k with batch b (``skip = k * b``) sees exactly the keys an uninterrupted
-    run would have seen from step k on."""
+    run would have seen from step k on.
+
+    Data-parallel training (``world`` processes, ``batch`` samples each per step): every process
+    draws the same global sequence and keeps its slice of each global batch of ``batch x world``
+    keys, so the processes together see exactly the batches of a single-process run (and ``skip``
+    still counts keys of the global sequence)."""
 
     def __init__(self, lengths: Sequence[int], weights: Sequence[float], num_samples: int, seed: int = 0,
-                 skip: int = 0):
+                 skip: int = 0, rank: int = 0, world: int = 1, batch: int = 1):
         if len(lengths) != len(weights) or not lengths:
             raise ValueError("weights: expected one weight per source")
         w = np.asarray(weights, dtype=np.float64)
@@ -293,6 +298,9 @@ class MixtureSampler(torch.utils.data.Sampler):
         self.lengths, self.p = list(lengths), w / w.sum()
         self.num_samples, self.seed, self.epoch = int(num_samples), int(seed), 0
         self.skip = int(skip)  # keys of epoch 0 already consumed (a resumed stage continues the sequence)
+        self.rank, self.world, self.batch = int(rank), int(world), int(batch)
+        if not 0 <= self.rank < self.world:
+            raise ValueError(f"rank {rank} of a world of {world}")
 
     def set_epoch(self, epoch: int) -> None:
         self.epoch = int(epoch)
@@ -300,7 +308,7 @@ class MixtureSampler(torch.utils.data.Sampler):
     def __len__(self) -> int:
         # The full epoch even when skipping: Lightning counts a resumed epoch's batches from its
         # checkpointed position, so the epoch and the stage end together after the skipped keys.
-        return self.num_samples
+        return self.num_samples // self.world
 
     def __iter__(self):
         epoch = self.epoch
@@ -308,7 +316,8 @@ class MixtureSampler(torch.utils.data.Sampler):
         skip = self.skip if epoch == 0 else 0
         rng = np.random.default_rng([self.seed, epoch])
         sources = rng.choice(len(self.lengths), size=self.num_samples, p=self.p)
+        step = self.batch * self.world
         for n, s in enumerate(sources):
             index = int(rng.integers(self.lengths[s]))
-            if n >= skip:
+            if n >= skip and (n % step) // self.batch == self.rank:
                 yield (int(s), index, epoch * self.num_samples + n)
