@@ -122,19 +122,32 @@ def _kill_when(args: list[str], cwd: Path, trigger: str) -> None:
     proc.stdout.close()
 
 
+@pytest.fixture(scope="module")
+def uninterrupted(tmp_path_factory):
+    """The uninterrupted run of a job, once per set of overrides (kill points share them)."""
+    done: dict[tuple[str, ...], Path] = {}
+
+    def get(extra: list[str]) -> Path:
+        if tuple(extra) not in done:
+            root = tmp_path_factory.mktemp("uninterrupted")
+            clean = cli(*smoke_overrides(root, *extra), cwd=root)
+            assert clean.returncode == 0, clean.stderr[-2000:]
+            done[tuple(extra)] = root
+        return done[tuple(extra)]
+
+    return get
+
+
 @pytest.mark.parametrize("point", list(KILL_POINTS))
-def test_a_killed_job_resumes_into_its_run_with_the_uninterrupted_result(tmp_path, point):
+def test_a_killed_job_resumes_into_its_run_with_the_uninterrupted_result(tmp_path, point, uninterrupted):
     """SIGKILL at a point of the job (a stage's training, evaluation, the final logging), the same
     command again: the job resumes (a stage from its last checkpoint, with the same batches and
     the same iterative-net queue) into the same MLflow run, which ends FINISHED with exactly the
     metrics and weights of an uninterrupted run."""
     overrides, trigger = KILL_POINTS[point]
     extra = [*overrides, "scale.checkpoint_every=5", "eval.max_samples=1"]
-    (tmp_path / "a").mkdir()
+    clean = uninterrupted(extra)
     (tmp_path / "b").mkdir()
-    clean = cli(*smoke_overrides(tmp_path / "a", *extra), cwd=tmp_path / "a")
-    assert clean.returncode == 0, clean.stderr[-2000:]
-
     args = smoke_overrides(tmp_path / "b", *extra)
     _kill_when(args, tmp_path / "b", trigger)
     killed_id, status, _ = _metrics(tmp_path / "b")
@@ -147,7 +160,7 @@ def test_a_killed_job_resumes_into_its_run_with_the_uninterrupted_result(tmp_pat
     if stage:
         assert f"resuming stage {stage} from step" in again.stdout
     run_id, status, resumed = _metrics(tmp_path / "b")
-    _, _, reference = _metrics(tmp_path / "a")
+    _, _, reference = _metrics(clean)
     assert run_id == killed_id and status == "FINISHED"
     assert resumed == reference and len(reference) > 10
 
@@ -155,7 +168,7 @@ def test_a_killed_job_resumes_into_its_run_with_the_uninterrupted_result(tmp_pat
         stages = (root / "cache" / "stages").glob("*/weights.pt")
         return {p.parent.name.split("-")[0]: load_checkpoint(p) for p in stages}
 
-    a, b = weights(tmp_path / "a"), weights(tmp_path / "b")
+    a, b = weights(clean), weights(tmp_path / "b")
     assert a.keys() == b.keys()
     assert all(torch.equal(a[s][net][k], b[s][net][k]) for s in a for net in a[s] for k in a[s][net])
 
