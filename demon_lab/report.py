@@ -271,6 +271,11 @@ def write_markdown(spec, result, info, failed, paper_rows) -> str:
         w("## Figures\n\n")
         for path in sorted(result.get("figures", [])):
             w(f"![{Path(path).stem}](figures/{Path(path).name})\n\n")
+        lacking = result.get("without_artifacts", [])
+        if lacking and set(spec["figures"]) - {"iterations"}:
+            w(f"Figures drawn from run artifacts (per-pixel errors, per-sample motion errors, depth maps) leave "
+              f"out {len(lacking)} of the {result['counted']} counted runs, whose artifacts are not in this "
+              f"store's artifact location: {', '.join(lacking)}.\n\n")
     w("## Runs not counted\n\n")
     if not failed and not result["missing"] and not result.get("rerun"):
         w("None: every expected (row, seed) has a FINISHED run and no run failed.\n")
@@ -521,6 +526,13 @@ def report(name: str, uri: str, out_dir: Path, directory: Path = ABLATIONS) -> d
         elif figure == "qualitative":
             figures += figure_qualitative(spec, result, figures_dir)
     result["figures"] = [str(p) for p in figures]
+    used = {r.run_id: r for per_row in result["used"].values() for per_seed in per_row.values()
+            for r in per_seed.values()}
+    result["without_artifacts"] = sorted(i for i, r in used.items() if r.artifact("") is None)
+    result["counted"] = len(used)
+    if result["without_artifacts"] and set(spec.get("figures", [])) - {"iterations"}:
+        print(f"[demon_lab.report] {name}: {len(result['without_artifacts'])} of {len(used)} counted runs have no "
+              f"artifacts on this machine; the figures drawn from artifacts leave them out", file=sys.stderr)
     paths = {"md": out_dir / f"{name}.md", "csv": out_dir / f"{name}.csv", "tex": out_dir / f"{name}.tex"}
     paths["md"].write_text(write_markdown(spec, result, info, failed, paper_rows))
     paths["csv"].write_text(write_csv(spec, result, paper_rows))
