@@ -74,9 +74,9 @@ def _fake_store(tmp: Path) -> str:
     return uri
 
 
-def _spec(directory: Path) -> None:
+def _spec(directory: Path, **extra) -> None:
     (directory / "paper_numbers.csv").write_text((report.ABLATIONS / "paper_numbers.csv").read_text())
-    spec = {"title": "A study", "runs": [["+experiment=study"]], "seeds": [0, 1, 2],
+    spec = {**extra, "title": "A study", "runs": [["+experiment=study"]], "seeds": [0, 1, 2],
             "datasets": {"setA": "SUN3D"},
             "tables": [{"name": "t", "caption": "cap", "experiment": "study", "columns": ["l1_inv", "tran_deg"],
                         "rows": [{"label": "row a", "match": {"row": "a"}, "metrics": "it0",
@@ -104,6 +104,17 @@ def test_report_aggregates_seeds_and_lists_failed_and_missing_runs(tmp_path):
     assert "python -m demon_lab -m +experiment=study" in md
     tex = paths["tex"].read_text()
     assert "\\begin{tabular}" in tex and "2.000 $\\pm$ 2.484" in tex
+
+
+def test_report_names_counted_runs_whose_artifacts_are_gone(tmp_path, capsys):
+    """Runs logged metrics but no artifacts (as when a store's artifact folder is lost): the tables
+    count them, the artifact-based figures cannot, and the report says so instead of drawing less."""
+    uri = _fake_store(tmp_path)
+    _spec(tmp_path, figures=["qualitative", "pixel_histograms"])
+    md = report.report("study", uri, tmp_path / "reports", tmp_path)["md"].read_text()
+    assert "| row a | 3 |" in md
+    assert "leave out 5 of the 5 counted runs" in md
+    assert "5 of 5 counted runs have no artifacts" in capsys.readouterr().err
 
 
 def test_report_of_an_unknown_spec_is_one_line(tmp_path):
