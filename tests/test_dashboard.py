@@ -4,13 +4,13 @@ loaded in headless Chromium (Debian's ``chromium``; ``.ci/run`` installs it)."""
 from __future__ import annotations
 
 import os
-import socket
 import struct
 import zlib
 
 import pytest
 
 from demon_lab import dashboard
+from tests.test_parallel import _free_port
 from tests.test_pipeline import cli, client, smoke_overrides
 
 pytestmark = pytest.mark.dashboard
@@ -24,12 +24,6 @@ def browser():
             pytest.fail("CI must install chromium (.ci/run) for the dashboard test")
         pytest.skip("no Chromium browser here (apt-get install chromium)")
     return found
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def _png_rows(path) -> tuple[int, int, list[bytes]]:
