@@ -164,6 +164,9 @@ def _quiet_lightning() -> None:
         logging.getLogger(name).setLevel(logging.WARNING)
     warnings.filterwarnings("ignore", message=".*LeafSpec.*")
     warnings.filterwarnings("ignore", message=".*does not have many workers.*")
+    # The data stream resumes itself: build_datamodule(skip=...) starts the sampler at the
+    # checkpoint's step, so Lightning's "dataloader is not resumable" warning does not apply.
+    warnings.filterwarnings("ignore", message=".*dataloader is not resumable.*")
 
 
 def load_stage(chain: DeMoN, stage: StageDir) -> None:
