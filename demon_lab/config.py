@@ -15,13 +15,22 @@ SHARED = Path(__file__).resolve().parents[2] / "shared"
 """The ``shared/`` folder beside the project checkout, where the real SUN3D pair ships."""
 
 
+def _times(value: Any, factor: Any) -> int:
+    """``${times:${scale.steps.dm1},4}``: a step count scaled by an integer factor."""
+    if isinstance(value, bool) or isinstance(factor, bool) or not isinstance(value, int) or not isinstance(factor, int):
+        raise ConfigError(f"times: expected two integers, got {value!r} and {factor!r}")
+    return value * factor
+
+
 def register_resolvers() -> None:
     """``${shared:data/real/...}`` -> an absolute path inside :data:`SHARED`, whatever the
-    working directory."""
+    working directory; ``${times:N,K}`` -> N x K for integers (nothing else is evaluated)."""
     from omegaconf import OmegaConf
 
     if not OmegaConf.has_resolver("shared"):
         OmegaConf.register_new_resolver("shared", lambda path="": str(SHARED / path))
+    if not OmegaConf.has_resolver("times"):
+        OmegaConf.register_new_resolver("times", _times)
 
 
 class ConfigError(ValueError):

@@ -187,6 +187,33 @@ def test_experiments_exist_for_every_study():
     assert set(EXPERIMENTS) >= {"gt_flow_oracle", "gt_depth_motion_oracle", "iterations", "loss_weights", "baselines"}
 
 
+@pytest.mark.parametrize("scale", ["smoke", "cpu", "paper"])
+def test_longer_oracle_study_trains_dm1_four_times_the_profile_and_shares_flow1(scale):
+    from hydra import compose
+
+    import demon_lab.config  # noqa: F401  (registers the ${times:} resolver, as the app does)
+    from demon_lab.train import stage_dirs
+
+    with initialize_config_dir(CONF, version_base="1.3"):
+        base = compose("config", [f"scale={scale}", "+experiment=gt_flow_oracle", "oracle=flow"])
+        long = compose("config", [f"scale={scale}", "+experiment=gt_flow_oracle_long", "oracle=flow"])
+    assert long.experiment == "gt_flow_oracle_long" and long.schedule.stages.dm1.oracle == "flow"
+    assert long.schedule.stages.dm1.steps == 4 * base.scale.steps.dm1 == 4 * base.schedule.stages.dm1.steps
+    (flow1, dm1), (flow1_long, dm1_long) = stage_dirs(base), stage_dirs(long)
+    assert flow1.key == flow1_long.key and dm1.key != dm1_long.key
+
+
+def test_times_resolver_takes_integers_only():
+    from omegaconf import OmegaConf
+    from omegaconf.errors import InterpolationResolutionError
+
+    import demon_lab.config  # noqa: F401  (registers the resolver)
+
+    assert OmegaConf.create({"n": 3, "m": "${times:${n},4}"}).m == 12
+    with pytest.raises(InterpolationResolutionError, match="times: expected two integers"):
+        OmegaConf.create({"n": "3; rm -rf", "m": "${times:${n},4}"}).m
+
+
 def test_killed_training_stage_resumes_from_its_checkpoint(tmp_path):
     """A real job is killed (SIGKILL) mid-stage; the same command resumes from the stage's last
     checkpoint instead of starting over."""
