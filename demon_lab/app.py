@@ -37,6 +37,7 @@ def job_tags(cfg: DictConfig, key: str) -> dict[str, str]:
         **{f"{TAG}{k}": v for k, v in git_state().items()},
         f"{TAG}torch": torch.__version__, f"{TAG}cuda": str(torch.version.cuda),
         f"{TAG}device": "cuda" if torch.cuda.is_available() else "cpu", f"{TAG}host_python": platform.python_version(),
+        f"{TAG}cpu_threads": str(torch.get_num_threads()),
     }
 
 
@@ -60,6 +61,8 @@ def format_table(summary: dict[str, dict[str, float]], iterations: int, refined:
 def run(cfg: DictConfig) -> dict[str, Any]:
     """One job. Returns {'status': 'finished'|'skipped', 'run_id': ..., 'summary': ...}."""
     validate(cfg)
+    if cfg.get("threads") is not None:
+        set_threads(int(cfg.threads))
     if cfg.method == "demon":
         from demon_lab.train import global_rank, prepare_chain, world_size
 
@@ -297,6 +300,16 @@ def _known_errors() -> tuple[type[BaseException], ...]:
     from demon_lab.train import TrainingDiverged
 
     return ConfigError, DataError, TrackingError, CheckpointError, TrainingDiverged
+
+
+def set_threads(n: int) -> None:
+    """Limit this process's torch and OpenCV CPU threads: processes that share cores, each running
+    a thread per core, slow each other down far more than the share they give up."""
+    import cv2
+    import torch
+
+    torch.set_num_threads(n)
+    cv2.setNumThreads(n)
 
 
 def _multirun_job_dir() -> Path | None:

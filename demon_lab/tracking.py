@@ -32,7 +32,7 @@ from demon_lab.filelock import file_lock
 TAG = "demon_lab."
 # Config keys that do not change what a job computes (so they are not part of its run key).
 NON_SEMANTIC = ("tracking", "force", "hydra", "cache_dir", "eval.visualize", "eval.point_clouds", "row",
-                "data.num_workers")
+                "data.num_workers", "threads")
 
 
 def metric_name(key: str) -> str:

@@ -66,6 +66,8 @@ def validate(cfg: DictConfig) -> None:
         raise ConfigError(str(e).splitlines()[0]) from None
     _int("iterations", cfg.iterations, 0)
     _int("seed", cfg.seed, 0)
+    if cfg.get("threads") is not None:
+        _int("threads", cfg.threads, 1)
     _choice("oracle", cfg.oracle, ORACLES)
     _choice("method", cfg.method, METHODS)
     if cfg.method != "demon" and cfg.oracle is not None:

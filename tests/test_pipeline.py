@@ -10,9 +10,11 @@ import time
 from pathlib import Path
 
 import pytest
+import torch
 from hydra import compose, initialize_config_dir
 
 from demon_lab.__main__ import CONF, check
+from demon_lab.tracking import run_key
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -43,7 +45,11 @@ def smoke_run(tmp_path_factory):
     from demon_lab.app import run
 
     tmp = tmp_path_factory.mktemp("smoke")
-    result = run(compose_config(smoke_overrides(tmp)))
+    threads = torch.get_num_threads()
+    try:
+        result = run(compose_config(smoke_overrides(tmp, "threads=1")))
+    finally:
+        torch.set_num_threads(threads)
     return tmp, result
 
 
@@ -56,6 +62,9 @@ def test_smoke_pipeline_records_a_finished_run(smoke_run):
     tags = run.data.tags
     assert tags["demon_lab.run_key"] == result["run_key"] and tags["demon_lab.scale"] == "smoke"
     assert tags["demon_lab.seed"] == "0" and "demon_lab.git_commit" in tags and "demon_lab.torch" in tags
+    # threads=1 took effect and is not part of what the job computes (same run key without it)
+    assert tags["demon_lab.cpu_threads"] == "1" and run.data.params["threads"] == "1"
+    assert result["run_key"] == run_key(compose_config(smoke_overrides(tmp)))
     assert run.data.params["model.width"] == "0.0625" and run.data.params["iterations"] == "3"
     m = run.data.metrics
     for name in ("synthetic_scenes11", "synthetic_sun3d", "synthetic_mvs", "middlebury"):
@@ -138,6 +147,7 @@ def test_a_job_that_raises_leaves_its_run_failed(tmp_path):
 
 @pytest.mark.parametrize("args, message", [
     (["iterations=-1"], "iterations: expected an integer >= 0"),
+    (["threads=0"], "threads: expected an integer >= 1"),
     (["model.width=0"], "model.width: expected a positive number"),
     (["data.size=[100,128]"], "data.size: expected [H, W] with sides positive multiples of 32"),
     (["model.variant=v3"], "model.variant: expected one of v1, v2"),
@@ -211,7 +221,7 @@ def test_times_resolver_takes_integers_only():
 
     assert OmegaConf.create({"n": 3, "m": "${times:${n},4}"}).m == 12
     with pytest.raises(InterpolationResolutionError, match="times: expected two integers"):
-        OmegaConf.create({"n": "3; rm -rf", "m": "${times:${n},4}"}).m
+        _ = OmegaConf.create({"n": "3; rm -rf", "m": "${times:${n},4}"}).m
 
 
 def test_killed_training_stage_resumes_from_its_checkpoint(tmp_path):
