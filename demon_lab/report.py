@@ -6,8 +6,8 @@ paper's dataset whose numbers stand beside it) and tables whose rows select runs
 (``match``) and read one pass's metrics (``metrics``: ``it<k>``, ``refined`` or ``""`` for the
 summary). The report reads FINISHED runs only, keeps the newest run per (row, seed), aggregates
 seeds (mean, sample std, 95 % t-interval, n) and writes ``reports/NAME.md``, ``.csv``, ``.tex``
-and ``reports/figures/NAME_*.png``. FAILED runs (unless their job was re-run to FINISHED) and
-seeds without a run are listed.
+and ``reports/figures/NAME_*.png``. FAILED runs (unless their job, or their row and seed, has a
+newer FINISHED run) and seeds without a run are listed.
 
 ``--run`` first executes the spec's commands (skip-if-finished makes that incremental).
 """
@@ -215,6 +215,22 @@ def build(spec: Mapping[str, Any], runs: Sequence[Run]) -> dict[str, Any]:
     return {"cells": cells, "used": used, "missing": missing}
 
 
+def _superseded(failed: Run, spec: Mapping[str, Any], runs: Sequence[Run], used: Mapping[str, Any]) -> bool:
+    """A FAILED run whose job was re-run to FINISHED (same run key), or whose row and seed have a
+    newer FINISHED run in the table (a later attempt, e.g. after a code change)."""
+    if any(r.status == "FINISHED" and r.get("run_key") == failed.get("run_key") for r in runs):
+        return True
+    seed = int(failed.get("seed") or 0)
+    for table in spec["tables"]:
+        if table["experiment"] != failed.experiment:
+            continue
+        for row in table["rows"]:
+            chosen = used[table["name"]][row["label"]].get(seed)
+            if chosen is not None and _matches(failed, row.get("match", {})) and chosen.start_time > failed.start_time:
+                return True
+    return False
+
+
 def _fmt(v: float, digits: int = 3) -> str:
     if v is None or not math.isfinite(v):
         return "-"
@@ -287,7 +303,8 @@ def write_markdown(spec, result, info, failed, paper_rows) -> str:
     for line in result["missing"]:
         w(f"- missing: {line}\n")
     if result.get("rerun"):
-        w(f"- {result['rerun']} FAILED run(s) whose job was re-run to FINISHED are not listed\n")
+        w(f"- {result['rerun']} FAILED run(s) followed by a FINISHED run of the same job, or of the same row "
+          f"and seed, are not listed\n")
     return out.getvalue()
 
 
@@ -503,9 +520,10 @@ def report(name: str, uri: str, out_dir: Path, directory: Path = ABLATIONS) -> d
     runs = fetch_runs(uri, experiments)
     result = build(spec, runs)
     paper_rows = paper_numbers(directory / "paper_numbers.csv")
-    finished_keys = {r.get("run_key") for r in runs if r.status == "FINISHED"}
-    failed = [r for r in runs if r.status == "FAILED" and r.get("run_key") not in finished_keys]
-    result["rerun"] = sum(1 for r in runs if r.status == "FAILED" and r.get("run_key") in finished_keys)
+    failed = [r for r in runs if r.status == "FAILED"]
+    superseded = [r for r in failed if _superseded(r, spec, runs, result["used"])]
+    failed = [r for r in failed if r not in superseded]
+    result["rerun"] = len(superseded)
     info = _describe(spec, runs, result["used"])
     out_dir.mkdir(parents=True, exist_ok=True)
     figures_dir = out_dir / "figures"

@@ -71,6 +71,11 @@ def _fake_store(tmp: Path) -> str:
     for seed, value in enumerate([10.0, 14.0]):
         add("b", seed, value)
     add("b", 2, 0.0, status="FAILED")
+    old = tracker.start("a-1-old", {f"{TAG}run_key": "a1-old", f"{TAG}row": "a", f"{TAG}seed": "1"})
+    tracker.fail(old, RuntimeError("killed"))  # an attempt of row a, seed 1 under another run key...
+    run = tracker.start("a-1-again", {f"{TAG}run_key": "a1-again", f"{TAG}row": "a", f"{TAG}seed": "1"})
+    tracker.log_metrics(run, {"test/setA/it0/l1_inv": 2.0, "test/setA/it0/tran_deg": 20.0})
+    tracker.finish(run, "FINISHED")  # ...superseded by this newer FINISHED run (same value as before)
     return uri
 
 
@@ -99,7 +104,8 @@ def test_report_aggregates_seeds_and_lists_failed_and_missing_runs(tmp_path):
     assert float(a["paper"]) == 0.058  # Table 2, depth-motion net, no GT, SUN3D
     md = paths["md"].read_text()
     assert "| row a | 3 | 2.000 ± 2.484 | 20.000 ± 24.841 |" in md
-    assert "FAILED run" in md and "NaN loss at step 7" in md
+    assert md.count("- FAILED run") == 1 and "NaN loss at step 7" in md  # row b, seed 2
+    assert "1 FAILED run(s) followed by a FINISHED run of the same job, or of the same row and seed" in md
     assert "missing: t / row b: no FINISHED run for seed(s) 2" in md
     assert "python -m demon_lab -m +experiment=study" in md
     tex = paths["tex"].read_text()
