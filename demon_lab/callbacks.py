@@ -27,9 +27,15 @@ from omegaconf import DictConfig
 PARENT_ENV = "DEMON_LAB_PARENT_RUN"
 
 
+# Overrides that change where or how a sweep runs, not what it computes: the same sweep re-issued
+# with another thread count or store address continues its parent run.
+NOT_THE_SWEEP = ("hydra", "tracking.", "threads=", "force=", "cache_dir=")
+
+
 def sweep_key(config: DictConfig) -> str:
-    """The sweep's identity: its experiment and command-line overrides (launcher options aside)."""
-    overrides = sorted(o for o in config.hydra.overrides.task if not o.lstrip("+~").startswith("hydra"))
+    """The sweep's identity: its experiment and the command-line overrides that change what it
+    computes (launcher options, thread counts, store addresses, cache folders aside)."""
+    overrides = sorted(o for o in config.hydra.overrides.task if not o.lstrip("+~").startswith(NOT_THE_SWEEP))
     blob = json.dumps({"experiment": str(config.experiment), "overrides": overrides})
     return hashlib.sha256(blob.encode()).hexdigest()[:16]
 
@@ -83,12 +89,17 @@ class MultirunTracking(Callback):
         if self.tracker is not None and self.parent is not None:
             children = self.tracker.children(self.parent)
             counts = {s: sum(1 for r in children if r.info.status == s) for s in ("FINISHED", "FAILED", "RUNNING")}
+            # a FAILED attempt (a crash, a SIGTERM) whose job has since FINISHED is not a failed job
+            retried = sum(1 for r in children if r.info.status == "FAILED"
+                          and self.tracker.find_finished(r.data.tags.get(f"{TAG}run_key", "")))
             self.tracker.set_tags(self.parent, {f"{TAG}jobs_finished": counts["FINISHED"],
                                                 f"{TAG}jobs_failed_now": len(failed)})
             self.tracker.finish(self.parent, "FAILED" if failed else "FINISHED")
             os.environ.pop(PARENT_ENV, None)
             print(f"[demon_lab] sweep run {self.parent}: {counts['FINISHED']} job runs FINISHED, "
-                  f"{counts['FAILED']} FAILED", flush=True)
+                  f"{counts['FAILED'] - retried} FAILED"
+                  + (f" ({retried} earlier FAILED attempt(s) of jobs that have since FINISHED)" if retried else ""),
+                  flush=True)
         if self.server is not None:
             self.server.stop()
         if failed:

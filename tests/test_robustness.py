@@ -215,7 +215,7 @@ def test_a_killed_sweep_reissued_completes_only_the_missing_jobs(tmp_path):
     jobs, parents = _jobs_and_parents(tmp_path)
     assert len(parents) == 1 and [r.info.status for r in jobs].count("FINISHED") <= 1
 
-    again = cli(*args, cwd=tmp_path)
+    again = cli(*args, "threads=1", cwd=tmp_path)  # another thread count: still the same sweep
     assert again.returncode == 0, again.stderr[-3000:]
     assert f"continuing the sweep run {parents[0].info.run_id}" in again.stdout
     assert again.stdout.count("skipped: run key") == 1
@@ -223,6 +223,27 @@ def test_a_killed_sweep_reissued_completes_only_the_missing_jobs(tmp_path):
     assert sorted(r.data.tags["demon_lab.seed"] for r in jobs) == ["0", "1", "2"]
     assert all(r.info.status == "FINISHED" for r in jobs) and parent.info.status == "FINISHED"
     assert all(r.data.tags["mlflow.parentRunId"] == parent.info.run_id for r in jobs)
+
+
+def test_sweep_verdict_does_not_count_failed_attempts_of_jobs_that_finished_since(tmp_path, capsys):
+    """A job's first attempt FAILED (a crash, a SIGTERM), a later attempt FINISHED: the sweep's
+    closing line counts one finished job and no failed one, and names the earlier attempt."""
+    from omegaconf import OmegaConf
+
+    from demon_lab.callbacks import MultirunTracking
+    from demon_lab.tracking import TAG, Tracker
+
+    tracker = Tracker(f"sqlite:///{tmp_path}/mlflow.db", "default", str(tmp_path / "artifacts"))
+    parent = tracker.start("sweep", {f"{TAG}kind": "sweep"})
+    first = tracker.start("job", {f"{TAG}run_key": "k0"}, parent_id=parent)
+    tracker.fail(first, RuntimeError("SIGTERMException"))
+    tracker.finish(tracker.start("job", {f"{TAG}run_key": "k0"}, parent_id=parent), "FINISHED")
+    tracker.fail(tracker.start("job", {f"{TAG}run_key": "k1"}, parent_id=parent), RuntimeError("bad data"))
+    callback = MultirunTracking()
+    callback.tracker, callback.parent, callback.started = tracker, parent, time.time()
+    callback.on_multirun_end(OmegaConf.create({"hydra": {"sweep": {"dir": str(tmp_path / "sweep")}}}))
+    line = capsys.readouterr().out.strip().splitlines()[-1]
+    assert line.endswith("1 job runs FINISHED, 1 FAILED (1 earlier FAILED attempt(s) of jobs that have since FINISHED)")
 
 
 def _pair_folder(tmp: Path, damage: str) -> Path:
