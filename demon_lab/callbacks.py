@@ -27,15 +27,20 @@ from omegaconf import DictConfig
 PARENT_ENV = "DEMON_LAB_PARENT_RUN"
 
 
-# Overrides that change where or how a sweep runs, not what it computes: the same sweep re-issued
-# with another thread count or store address continues its parent run.
-NOT_THE_SWEEP = ("hydra", "tracking.", "threads=", "force=", "cache_dir=")
+def _changes_results(override: str) -> bool:
+    """False for an override of a key that is not part of a job's run key (tracking.NON_SEMANTIC:
+    launcher, store, thread count, cache folder...), e.g. ``hydra/launcher=joblib``, ``threads=1``."""
+    from demon_lab.tracking import NON_SEMANTIC
+
+    key = override.lstrip("+~").split("=", 1)[0].replace("/", ".")
+    return not any(key == k or key.startswith(k + ".") for k in NON_SEMANTIC)
 
 
 def sweep_key(config: DictConfig) -> str:
-    """The sweep's identity: its experiment and the command-line overrides that change what it
-    computes (launcher options, thread counts, store addresses, cache folders aside)."""
-    overrides = sorted(o for o in config.hydra.overrides.task if not o.lstrip("+~").startswith(NOT_THE_SWEEP))
+    """The sweep's identity: its experiment and the command-line overrides that change what its
+    jobs compute, so the same sweep re-issued with another thread count, store address or
+    launcher continues its parent run."""
+    overrides = sorted(o for o in config.hydra.overrides.task if _changes_results(o))
     blob = json.dumps({"experiment": str(config.experiment), "overrides": overrides})
     return hashlib.sha256(blob.encode()).hexdigest()[:16]
 

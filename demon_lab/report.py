@@ -520,10 +520,12 @@ def report(name: str, uri: str, out_dir: Path, directory: Path = ABLATIONS) -> d
     runs = fetch_runs(uri, experiments)
     result = build(spec, runs)
     paper_rows = paper_numbers(directory / "paper_numbers.csv")
-    failed = [r for r in runs if r.status == "FAILED"]
-    superseded = [r for r in failed if _superseded(r, spec, runs, result["used"])]
-    failed = [r for r in failed if r not in superseded]
-    result["rerun"] = len(superseded)
+    failed, result["rerun"] = [], 0
+    for r in (r for r in runs if r.status == "FAILED"):
+        if _superseded(r, spec, runs, result["used"]):
+            result["rerun"] += 1
+        else:
+            failed.append(r)
     info = _describe(spec, runs, result["used"])
     out_dir.mkdir(parents=True, exist_ok=True)
     figures_dir = out_dir / "figures"

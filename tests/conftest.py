@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import socket
 from pathlib import Path
 
 import numpy as np
@@ -13,6 +14,13 @@ SHARED = Path(__file__).resolve().parents[2] / "shared"
 SUN3D_PAIR = SHARED / "data" / "real" / "sun3d_train_0.1m_to_0.2m_00000"
 
 DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
+
+
+def free_port() -> int:
+    """A TCP port on 127.0.0.1 that nothing listens on right now."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
 
 
 def relative_motion(pose1: np.ndarray, pose2: np.ndarray) -> np.ndarray:

@@ -10,7 +10,7 @@ import zlib
 import pytest
 
 from demon_lab import dashboard
-from tests.test_parallel import _free_port
+from tests.conftest import free_port
 from tests.test_pipeline import cli, client, smoke_overrides
 
 pytestmark = pytest.mark.dashboard
@@ -73,7 +73,7 @@ def test_the_dashboard_shows_the_runs_of_a_sweep(tmp_path, browser):
     assert len(jobs) == 2
 
     uri = f"sqlite:///{tmp_path}/mlflow.db"
-    with dashboard.serve(uri, _free_port(), tmp_path / "served-artifacts") as server:
+    with dashboard.serve(uri, free_port(), tmp_path / "served-artifacts") as server:
         assert server.startswith("http://127.0.0.1:")
         # the REST API the page itself calls lists the sweep: its parent and both jobs, FINISHED
         listed = dashboard.api(server, "runs/search", {"experiment_ids": [experiment.experiment_id]})["runs"]

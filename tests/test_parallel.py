@@ -8,6 +8,7 @@ import subprocess
 import sys
 import time
 
+from tests.conftest import free_port
 from tests.test_pipeline import cli, client, smoke_overrides
 
 WRITER = """
@@ -67,19 +68,13 @@ def test_joblib_sweep_on_the_default_sqlite_store(tmp_path):
     assert len(stages) == 3 and all(c.get_metric_history(r.info.run_id, "train/loss") for r in stages)
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 def _listening(port: int) -> bool:
     with socket.socket() as s:
         return s.connect_ex(("127.0.0.1", port)) == 0
 
 
 def test_local_server_serves_the_command_on_loopback_and_stops(tmp_path):
-    port = _free_port()
+    port = free_port()
     args = [*smoke_overrides(tmp_path), "tracking=local_server", f"tracking.server.port={port}",
             f"tracking.server.backend_store_uri=sqlite:///{tmp_path}/mlflow.db",
             "schedule.until=flow1", "iterations=0", "eval.max_samples=1"]
@@ -95,7 +90,7 @@ def test_local_server_serves_the_command_on_loopback_and_stops(tmp_path):
 
 
 def test_an_unreachable_tracking_server_fails_before_any_work(tmp_path):
-    port = _free_port()  # nothing listens there
+    port = free_port()  # nothing listens there
     result = cli(*smoke_overrides(tmp_path), f"tracking.uri=http://127.0.0.1:{port}", "schedule.until=flow1",
                  "iterations=0", cwd=tmp_path)
     lines = result.stderr.strip().splitlines()

@@ -199,8 +199,6 @@ def test_experiments_exist_for_every_study():
 
 @pytest.mark.parametrize("scale", ["smoke", "cpu", "paper"])
 def test_longer_oracle_study_trains_dm1_four_times_the_profile_and_shares_flow1(scale):
-    from hydra import compose
-
     import demon_lab.config  # noqa: F401  (registers the ${times:} resolver, as the app does)
     from demon_lab.train import stage_dirs
 
