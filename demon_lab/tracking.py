@@ -69,11 +69,11 @@ def semantic_config(cfg: DictConfig) -> dict[str, Any]:
 
 
 def run_key(cfg: DictConfig) -> str:
-    """Hash of the semantic config and the stage cache's code version (a change of the training
+    """Hash of the semantic config and the code and generator versions (a change of the training
     code that changes results bumps it, so old FINISHED runs no longer count as this job)."""
-    from demon_lab.stages.cache import CODE_VERSION
+    from demon_lab.stages.cache import versions
 
-    payload = {"config": semantic_config(cfg), "code_version": CODE_VERSION}
+    payload = {"config": semantic_config(cfg), **versions()}
     return hashlib.sha256(json.dumps(payload, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
 

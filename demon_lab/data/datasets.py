@@ -26,11 +26,11 @@ import torch
 
 from demon_lab.data import sample as smp
 from demon_lab.data import synthetic
+from demon_lab.data.synthetic import GENERATOR_VERSION
 from demon_lab.data.readers import demon_h5, middlebury, pair_folder, tum
 
 SPLIT_SEEDS = {"train": 0, "val": 10_000_000, "test": 20_000_000}
 """Synthetic samples of split S use seeds SPLIT_SEEDS[S] + index: disjoint ranges."""
-GENERATOR_VERSION = 3  # bump when rendering changes: it is part of the cache key
 DEFAULT_CACHE = Path(os.environ.get("DEMON_LAB_CACHE", Path.home() / ".cache" / "demon_lab")) / "data"
 
 

@@ -33,6 +33,9 @@ from demon_lab.data.sample import make_sample
 from demon_lab.data.textures import sample_texture, texture_bank
 
 EPS = 1e-9
+GENERATOR_VERSION = 4
+"""Bump when the scenes change: part of the data cache key, every stage key and every run key.
+4: camera 2 orbits the target in either sense (before: always the same sense, so t_x < 0)."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -356,6 +359,8 @@ def sample_cameras(rng: np.random.Generator, scene: Scene, preset: Preset) -> tu
     up = np.cross(side, ray)
     phi = rng.normal() * 0.5
     axis = math.cos(phi) * up + math.sin(phi) * side
+    if rng.random() < 0.5:  # either orbit sense: camera 2 moves to the left or to the right
+        axis = -axis
     c2 = target + _mm(_rot_axis(axis, beta), c1 - target) * rng.uniform(0.85, 1.15)
     if preset.indoor:
         c2 = np.clip(c2, -scene.room * 0.95 + np.array([0, 0, scene.room[2]]),
