@@ -201,3 +201,59 @@ def test_every_term_is_reported_and_weighted():
                                             torch.zeros(2, 6), gt, weights)
     assert set(terms) == {"depth2", "depth2_sig", "normal2", "rotation", "translation"}
     assert terms["translation"].item() == pytest.approx(15 * (1 + 2 * math.sqrt(1e-5) + 0), rel=1e-4)
+
+
+# ----------------------------------------------------------------------------- stage optimisation
+
+
+def test_released_learning_rate_is_constant_for_a_third_then_decays_quadratically_to_1e6():
+    from demon_lab.stages.base import learning_rate
+
+    lr = lambda step: learning_rate(step, 300, 1e-3, "released")  # noqa: E731
+    assert lr(0) == lr(100) == 1e-3
+    assert lr(200) == pytest.approx(1e-3 + (1e-6 - 1e-3) * 0.25)  # half-way through the decay
+    assert lr(300) == pytest.approx(1e-6)
+
+
+def test_supplementary_learning_rate_drops_20_percent_at_each_milestone():
+    from demon_lab.stages.base import learning_rate
+
+    lr = [learning_rate(s, 100, 1.0, "supplementary") for s in (0, 39, 40, 60, 80, 99)]
+    assert lr == pytest.approx([1.0, 1.0, 0.8, 0.64, 0.512, 0.512])
+    with pytest.raises(ValueError, match=r"schedule\.lr_schedule"):
+        learning_rate(0, 100, 1.0, "cosine")
+
+
+def test_warmup_rises_linearly_to_the_schedule():
+    from demon_lab.stages.base import learning_rate
+
+    assert learning_rate(0, 3000, 1e-3, "released", warmup_steps=100) == pytest.approx(1e-5)
+    assert learning_rate(49, 3000, 1e-3, "released", warmup_steps=100) == pytest.approx(5e-4)
+    assert learning_rate(99, 3000, 1e-3, "released", warmup_steps=100) == 1e-3
+    assert learning_rate(2999, 3000, 1e-3, "released", warmup_steps=100) == learning_rate(2999, 3000, 1e-3, "released")
+
+
+@pytest.mark.parametrize("sig_start", [0.0, 0.5])
+def test_flow_stage_sig_terms_start_at_sig_start(sig_start):
+    from unittest import mock
+
+    from torch.utils.data import default_collate
+
+    from demon_lab.data.datasets import SyntheticDataset
+    from demon_lab.stages.modules import FlowStage
+
+    torch.manual_seed(0)
+    chain = DeMoN("v1", width=0.0625, size=(64, 64))
+    stage = FlowStage(chain, weights=_preset("released_code"), steps=300, lr=1e-3, net="flow1", sig_start=sig_start)
+    ds = SyntheticDataset("synthetic_sun3d", "train", length=2, size=(64, 64), supersample=1, cache_dir=False)
+    batch = default_collate([{k: v for k, v in ds[i].items() if k != "id"} for i in range(2)])
+    gt = losses.ground_truth(batch)
+    sig = {}
+    for step in (0, 100, 149, 151, 250):
+        with mock.patch.object(FlowStage, "global_step", new_callable=mock.PropertyMock, return_value=step):
+            _, terms = stage.stage_loss(batch, gt)
+        sig[step] = float(terms["flow2_sig"])
+    expected = {s: losses.ease_out_quad(max(s - sig_start * 300, 0), 100) for s in sig}
+    unit = sig[250] / expected[250]  # the full-weight sig term (ramp 1 at step 250 either way)
+    assert sig == pytest.approx({s: unit * e for s, e in expected.items()}, rel=1e-5)
+    assert (sig[149] == 0) == (sig_start == 0.5) and sig[151] > 0

@@ -26,8 +26,8 @@ import torch
 
 from demon_lab.data import sample as smp
 from demon_lab.data import synthetic
-from demon_lab.data.synthetic import GENERATOR_VERSION
 from demon_lab.data.readers import demon_h5, middlebury, pair_folder, tum
+from demon_lab.data.synthetic import GENERATOR_VERSION
 
 SPLIT_SEEDS = {"train": 0, "val": 10_000_000, "test": 20_000_000}
 """Synthetic samples of split S use seeds SPLIT_SEEDS[S] + index: disjoint ranges."""

@@ -24,13 +24,15 @@ MULTISTEP_MILESTONES = (0.4, 0.6, 0.8)
 FINAL_LR = 1e-6
 
 
-def learning_rate(step: int, steps: int, base: float, schedule: str) -> float:
-    """The learning rate at ``step`` of a stage of ``steps`` steps."""
+def learning_rate(step: int, steps: int, base: float, schedule: str, warmup_steps: int = 0) -> float:
+    """The learning rate at ``step`` of a stage of ``steps`` steps; with ``warmup_steps`` it rises
+    linearly from ``base / warmup_steps`` to the schedule's value over the first steps."""
+    warm = min(1.0, (step + 1) / warmup_steps) if warmup_steps > 0 else 1.0
     if schedule == "released":
         tau = min(max((step - steps / 3) / (2 * steps / 3), 0.0), 1.0)
-        return base + (FINAL_LR - base) * tau * tau
+        return warm * (base + (FINAL_LR - base) * tau * tau)
     if schedule == "supplementary":
-        return base * 0.8 ** sum(step >= m * steps for m in MULTISTEP_MILESTONES)
+        return warm * base * 0.8 ** sum(step >= m * steps for m in MULTISTEP_MILESTONES)
     raise ValueError(f"schedule.lr_schedule: expected one of {LR_SCHEDULES}, got {schedule!r}")
 
 
@@ -42,19 +44,20 @@ class StageModule(L.LightningModule):
         trained: names of the chain's nets this stage trains.
         weights: a loss preset (:func:`demon_lab.losses.check_weights`).
         steps, lr, lr_schedule, weight_decay: the optimisation of the stage.
+        warmup_steps: linear learning-rate warm-up (0: none, as DeMoN).
         oracle: ground-truth inputs during training ('flow' for depth-motion stages,
             'depth_motion' for flow stages of the iterative net), or None.
     """
 
     def __init__(self, chain: DeMoN, trained: Sequence[str], weights: Mapping[str, float], steps: int,
                  lr: float, lr_schedule: str = "released", weight_decay: float = 0.0,
-                 oracle: str | None = None):
+                 oracle: str | None = None, warmup_steps: int = 0):
         super().__init__()
         self.chain = chain
         self.trained = list(trained)
         self.weights = losses.check_weights(weights)
         self.steps, self.base_lr, self.lr_schedule = int(steps), float(lr), lr_schedule
-        self.weight_decay, self.oracle = float(weight_decay), oracle
+        self.weight_decay, self.oracle, self.warmup_steps = float(weight_decay), oracle, int(warmup_steps)
         learning_rate(0, self.steps, self.base_lr, lr_schedule)  # validates the schedule name
         self.freeze_upstream()
         self.last_terms: dict[str, float] = {}
@@ -86,7 +89,8 @@ class StageModule(L.LightningModule):
             [{"params": decay, "weight_decay": self.weight_decay}, {"params": no_decay, "weight_decay": 0.0}],
             lr=self.base_lr, betas=(0.9, 0.999), eps=1e-6)
         scheduler = torch.optim.lr_scheduler.LambdaLR(
-            optimizer, lambda step: learning_rate(step, self.steps, self.base_lr, self.lr_schedule) / self.base_lr)
+            optimizer, lambda step: learning_rate(step, self.steps, self.base_lr, self.lr_schedule,
+                                                  self.warmup_steps) / self.base_lr)
         return {"optimizer": optimizer, "lr_scheduler": {"scheduler": scheduler, "interval": "step"}}
 
     def inputs(self, batch: Mapping[str, torch.Tensor]):
@@ -111,9 +115,11 @@ class StageModule(L.LightningModule):
                  batch_size=batch["image1"].shape[0])
         return loss
 
-    def ramp(self, duration_fraction: float) -> float:
-        """ease_out_quad over ``duration_fraction`` of the stage (DeMoN's sig-weight ramps)."""
-        return losses.ease_out_quad(self.global_step, duration_fraction * self.steps)
+    def ramp(self, duration_fraction: float, start_fraction: float = 0.0) -> float:
+        """ease_out_quad over ``duration_fraction`` of the stage (DeMoN's sig-weight ramps),
+        starting after ``start_fraction`` of it (0 before)."""
+        elapsed = max(self.global_step - start_fraction * self.steps, 0.0)
+        return losses.ease_out_quad(elapsed, duration_fraction * self.steps)
 
     def level5(self, duration_fraction: float) -> float:
         return losses.ease_in_quad_down(self.global_step, duration_fraction * self.steps)

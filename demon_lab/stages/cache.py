@@ -2,9 +2,9 @@
 
 Every stage's result is stored under a key hashing everything that determines it: the stage's own
 config, the model and loss config, the training data config, the seed, the upstream stages' keys
-and :func:`versions` (the code's and the scene generator's). A finished stage is reused instead of retrained (so an iteration sweep
-trains once and evaluates N times), an interrupted one resumes from its last checkpoint, and a
-file lock keeps concurrent jobs from training the same stage twice.
+and :func:`versions` (the code's and the scene generator's). A finished stage is reused instead of
+retrained (so an iteration sweep trains once and evaluates N times), an interrupted one resumes
+from its last checkpoint, and a file lock keeps concurrent jobs from training the same stage twice.
 
 Layout: ``<cache>/stages/<stage>-<key>/`` with ``last.ckpt`` (Lightning, for resuming),
 ``weights.pt`` (the trained nets' state dicts, written atomically when the stage finishes) and

@@ -24,11 +24,17 @@ from demon_lab.stages.base import StageModule
 class FlowStage(StageModule):
     """Trains ``flow1`` (bootstrap) or ``flow2`` (iterative, its inputs from the frozen bootstrap
     net, or from ground truth with ``oracle='depth_motion'``). Sig weights ramp in over the first
-    third; the level-5 losses fade out over it (spec section 4)."""
+    third; the level-5 losses fade out over it (spec section 4).
 
-    def __init__(self, *args, net: str = "flow1", **kwargs):
+    ``sig_start`` (a fraction of the stage, default 0 as DeMoN) holds the sig weights at 0 until
+    then and starts their ramp there. A short schedule needs it: near zero flow the sig terms'
+    gradient is 50-800x the flow term's (README, "What the cpu scale gives"), and a 1/100 schedule
+    gives the net ~800 steps instead of DeMoN's ~80,000 to find correspondence before they weigh in.
+    """
+
+    def __init__(self, *args, net: str = "flow1", sig_start: float = 0.0, **kwargs):
         super().__init__(*args, trained=[net], **kwargs)
-        self.net = net
+        self.net, self.sig_start = net, float(sig_start)
 
     def stage_loss(self, batch, gt):
         pair, image2_2, K = self.inputs(batch)
@@ -40,7 +46,8 @@ class FlowStage(StageModule):
                        else self.chain.bootstrap(pair, image2_2, K))
                 extra = flow_net_inputs(image2_2, src.inv_depth, src.normals, src.motion, K)
             flow5, flow2 = self.chain.flow2(pair, extra)
-        return losses.flow_loss(flow5, flow2, gt, self.weights, ramp=self.ramp(1 / 3), level5=self.level5(1 / 3))
+        return losses.flow_loss(flow5, flow2, gt, self.weights, ramp=self.ramp(1 / 3, self.sig_start),
+                                 level5=self.level5(1 / 3))
 
 
 class DepthMotionStage(StageModule):
