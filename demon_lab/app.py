@@ -28,13 +28,13 @@ def job_tags(cfg: DictConfig, key: str) -> dict[str, str]:
 
     import torch
 
-    from demon_lab.tracking import TAG, git_state
+    from demon_lab.tracking import TAG, git_state, version_tags
 
     return {
         f"{TAG}run_key": key, f"{TAG}experiment": cfg.experiment, f"{TAG}row": str(cfg.row),
         f"{TAG}seed": str(cfg.seed), f"{TAG}scale": str(cfg.scale.name), f"{TAG}data": str(cfg.data.name),
         f"{TAG}iterations": str(cfg.iterations), f"{TAG}oracle": str(cfg.oracle), f"{TAG}method": str(cfg.method),
-        **{f"{TAG}{k}": v for k, v in git_state().items()},
+        **{f"{TAG}{k}": v for k, v in git_state().items()}, **version_tags(),
         f"{TAG}torch": torch.__version__, f"{TAG}cuda": str(torch.version.cuda),
         f"{TAG}device": "cuda" if torch.cuda.is_available() else "cpu", f"{TAG}host_python": platform.python_version(),
         f"{TAG}cpu_threads": str(torch.get_num_threads()),

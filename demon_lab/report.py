@@ -4,7 +4,8 @@ An ablation spec (``ablations/NAME.yaml``) names the runs (``runs``: the overrid
 ``python -m demon_lab -m`` commands), the seeds expected, the test sets (each mapped to the
 paper's dataset whose numbers stand beside it) and tables whose rows select runs by tag or param
 (``match``) and read one pass's metrics (``metrics``: ``it<k>``, ``refined`` or ``""`` for the
-summary). The report reads FINISHED runs only, keeps the newest run per (row, seed), aggregates
+summary). The report reads FINISHED runs of this checkout's code and scene-generator versions
+only (older ones are stale: counted and named, not used), keeps the newest run per (row, seed), aggregates
 seeds (mean, sample std, 95 % t-interval, n) and writes ``reports/NAME.md``, ``.csv``, ``.tex``
 and ``reports/figures/NAME_*.png``. FAILED runs (unless their job, or their row and seed, has a
 newer FINISHED run) and seeds without a run are listed.
@@ -31,7 +32,7 @@ from typing import Any
 
 import yaml
 
-from demon_lab.tracking import TAG, metric_name
+from demon_lab.tracking import TAG, metric_name, version_tags
 
 ROOT = Path(__file__).resolve().parent.parent
 ABLATIONS = ROOT / "ablations"
@@ -293,7 +294,7 @@ def write_markdown(spec, result, info, failed, paper_rows) -> str:
               f"out {len(lacking)} of the {result['counted']} counted runs, whose artifacts are not in this "
               f"store's artifact location: {', '.join(lacking)}.\n\n")
     w("## Runs not counted\n\n")
-    if not failed and not result["missing"] and not result.get("rerun"):
+    if not failed and not result["missing"] and not result.get("rerun") and not result.get("stale"):
         w("None: every expected (row, seed) has a FINISHED run and no run failed.\n")
     for r in failed:
         what = ", ".join(f"{k}={r.get(k)}" for k in ("method", "oracle", "iterations")
@@ -302,6 +303,9 @@ def write_markdown(spec, result, info, failed, paper_rows) -> str:
           f"{r.tags.get(f'{TAG}error', 'no error recorded')[:300]}\n")
     for line in result["missing"]:
         w(f"- missing: {line}\n")
+    if result.get("stale"):
+        w(f"- {result['stale']} FINISHED run(s) of older code or scene-generator versions (this checkout: "
+          f"{result['versions']}; runs without these tags predate them): stale, not counted\n")
     if result.get("rerun"):
         w(f"- {result['rerun']} FAILED run(s) followed by a FINISHED run of the same job, or of the same row "
           f"and seed, are not listed\n")
@@ -518,7 +522,12 @@ def report(name: str, uri: str, out_dir: Path, directory: Path = ABLATIONS) -> d
     spec = load_spec(name, directory)
     experiments = sorted({t["experiment"] for t in spec["tables"]})
     runs = fetch_runs(uri, experiments)
+    current = version_tags()
+    stale = [r for r in runs if any(r.tags.get(k) != v for k, v in current.items())]
+    runs = [r for r in runs if all(r.tags.get(k) == v for k, v in current.items())]
     result = build(spec, runs)
+    result["stale"] = sum(r.status == "FINISHED" for r in stale)
+    result["versions"] = ", ".join(f"{k.removeprefix(TAG)} {v}" for k, v in current.items())
     paper_rows = paper_numbers(directory / "paper_numbers.csv")
     failed, result["rerun"] = [], 0
     for r in (r for r in runs if r.status == "FAILED"):

@@ -77,6 +77,14 @@ def run_key(cfg: DictConfig) -> str:
     return hashlib.sha256(json.dumps(payload, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
 
+def version_tags() -> dict[str, str]:
+    """``demon_lab.code_version`` and ``demon_lab.generator_version`` of this checkout: the versions
+    every run key includes, as tags, so a report can tell runs of older code or scenes apart."""
+    from demon_lab.stages.cache import versions
+
+    return {f"{TAG}{k}": str(v) for k, v in versions().items()}
+
+
 def flatten(d: Mapping[str, Any], prefix: str = "") -> dict[str, str]:
     out: dict[str, str] = {}
     for k, v in d.items():

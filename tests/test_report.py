@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from demon_lab import report
+from demon_lab import report, tracking
 from demon_lab.tracking import TAG, Tracker
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -56,9 +56,9 @@ def _fake_store(tmp: Path) -> str:
     uri = f"sqlite:///{tmp}/mlflow.db"
     tracker = Tracker(uri, "study", str(tmp / "artifacts"))
 
-    def add(row: str, seed: int, value: float, status: str = "FINISHED"):
+    def add(row: str, seed: int, value: float, status: str = "FINISHED", **versions):
         run = tracker.start(f"{row}-{seed}", {f"{TAG}run_key": f"{row}{seed}", f"{TAG}row": row,
-                                              f"{TAG}seed": str(seed)})
+                                              f"{TAG}seed": str(seed), **version_tags(**versions)})
         tracker.log_metrics(run, {"test/setA/it0/l1_inv": value, "test/setA/it0/tran_deg": 10 * value})
         if status == "FINISHED":
             tracker.finish(run, "FINISHED")
@@ -71,12 +71,22 @@ def _fake_store(tmp: Path) -> str:
     for seed, value in enumerate([10.0, 14.0]):
         add("b", seed, value)
     add("b", 2, 0.0, status="FAILED")
-    old = tracker.start("a-1-old", {f"{TAG}run_key": "a1-old", f"{TAG}row": "a", f"{TAG}seed": "1"})
+    add("a", 2, 555.0, generator_version="3")  # newest, but of another scene generator: stale
+    add("b", 2, 777.0, code_version=None)  # a run from before runs were tagged with versions: stale
+    old = tracker.start("a-1-old", {f"{TAG}run_key": "a1-old", f"{TAG}row": "a", f"{TAG}seed": "1",
+                                    **version_tags()})
     tracker.fail(old, RuntimeError("killed"))  # an attempt of row a, seed 1 under another run key...
-    run = tracker.start("a-1-again", {f"{TAG}run_key": "a1-again", f"{TAG}row": "a", f"{TAG}seed": "1"})
+    run = tracker.start("a-1-again", {f"{TAG}run_key": "a1-again", f"{TAG}row": "a", f"{TAG}seed": "1",
+                                      **version_tags()})
     tracker.log_metrics(run, {"test/setA/it0/l1_inv": 2.0, "test/setA/it0/tran_deg": 20.0})
     tracker.finish(run, "FINISHED")  # ...superseded by this newer FINISHED run (same value as before)
     return uri
+
+
+def version_tags(**changed: str | None) -> dict[str, str]:
+    """This checkout's version tags, with some changed (None: left out)."""
+    tags = {**tracking.version_tags(), **{f"{TAG}{k}": v for k, v in changed.items()}}
+    return {k: v for k, v in tags.items() if v is not None}
 
 
 def _spec(directory: Path, **extra) -> None:
@@ -107,6 +117,7 @@ def test_report_aggregates_seeds_and_lists_failed_and_missing_runs(tmp_path):
     assert md.count("- FAILED run") == 1 and "NaN loss at step 7" in md  # row b, seed 2
     assert "1 FAILED run(s) followed by a FINISHED run of the same job, or of the same row and seed" in md
     assert "missing: t / row b: no FINISHED run for seed(s) 2" in md
+    assert "- 2 FINISHED run(s) of older code or scene-generator versions" in md
     assert "python -m demon_lab -m +experiment=study" in md
     tex = paths["tex"].read_text()
     assert "\\begin{tabular}" in tex and "2.000 $\\pm$ 2.484" in tex
