@@ -85,6 +85,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     run_id = next((r for r in (persisted, tracker.find_interrupted(key)) if r and tracker.resumable(r, key)), None)
     if run_id is not None:
         tracker.resume(run_id)
+        tracker.set_tags(run_id, job_tags(cfg, key))  # the code that finishes it (same run key)
         print(f"[demon_lab] resuming the interrupted run {run_id} (run key {key})", flush=True)
     else:
         run_id = tracker.start(f"{cfg.experiment}-{key[:8]}", job_tags(cfg, key), parent_id=parent)

@@ -13,6 +13,7 @@ import pytest
 import torch
 
 from demon_lab.stages.cache import CheckpointError, atomic_torch_save, load_checkpoint
+from demon_lab.tracking import git_state, version_tags
 from tests.test_pipeline import cli, client, compose_config, smoke_overrides
 
 WRITER = """
@@ -152,6 +153,9 @@ def test_a_killed_job_resumes_into_its_run_with_the_uninterrupted_result(tmp_pat
     _kill_when(args, tmp_path / "b", trigger)
     killed_id, status, _ = _metrics(tmp_path / "b")
     assert status == "RUNNING"  # what a kill leaves behind
+    # As if the killed attempt ran older code: the resumed run is tagged with the code that finishes it.
+    client(tmp_path / "b").delete_tag(killed_id, "demon_lab.generator_version")
+    client(tmp_path / "b").set_tag(killed_id, "demon_lab.git_commit", "an-older-commit")
 
     again = cli(*args, cwd=tmp_path / "b")
     assert again.returncode == 0, again.stderr[-2000:]
@@ -163,6 +167,9 @@ def test_a_killed_job_resumes_into_its_run_with_the_uninterrupted_result(tmp_pat
     _, _, reference = _metrics(clean)
     assert run_id == killed_id and status == "FINISHED"
     assert resumed == reference and len(reference) > 10
+    tags = client(tmp_path / "b").get_run(run_id).data.tags
+    assert all(tags.get(k) == v for k, v in version_tags().items())
+    assert tags["demon_lab.git_commit"] == git_state()["git_commit"]
 
     def weights(root: Path) -> dict:
         stages = (root / "cache" / "stages").glob("*/weights.pt")
