@@ -10,7 +10,10 @@ triangulation angle is the median, over the valid pixels of view 1, of the angle
 point between the rays from the two camera centres. Means and (population) standard deviations
 are over pairs; the fractions are means over pairs of per-pair pixel fractions (visible: valid
 and seen in view 2); the median depth is the median over pairs of each pair's median view-1
-depth, in the source's unit (metres for real data). Samples are read at the source's native
+depth, in the source's unit (metres for real data). ``zero_flow_epe`` is the mean over pairs of
+the EPE of predicting no flow (DeMoN's EPE, normalised units, full resolution): what a flow net
+must beat. ``tran_x_negative_fraction``: the share of pairs whose camera 2 moves to the left (about
+half for a source without a sideways bias). Samples are read at the source's native
 resolution (synthetic ones at the configured ``data.size``), without augmentation.
 
     python -m demon_lab.data_stats data=synthetic_sun3d n=500 out=stats.json
@@ -32,12 +35,13 @@ from omegaconf import DictConfig
 from demon_lab.config import ConfigError
 
 KEYS = ("n_pairs", "rot_mean_deg", "rot_std_deg", "tri_mean_deg", "tri_std_deg",
-        "valid_fraction", "visible_fraction", "median_depth")
+        "valid_fraction", "visible_fraction", "median_depth", "zero_flow_epe", "tran_x_negative_fraction")
 
 
 def pair_statistics(sample: dict) -> dict[str, float]:
     """Rotation angle, median triangulation angle, fractions and median depth of one sample."""
     from demon_lab import geometry as geo
+    from demon_lab.metrics import flow_epe
 
     inv = sample["inv_depth"][None].double()
     motion = sample["motion"][None].double()
@@ -49,6 +53,8 @@ def pair_statistics(sample: dict) -> dict[str, float]:
         "valid_fraction": float(valid.mean()),
         "visible_fraction": float(sample["visible"].numpy().mean()),
         "median_depth": float(np.median(1.0 / inv.numpy()[valid[None]])),
+        "zero_flow_epe": flow_epe(np.zeros_like(sample["flow"].numpy()), sample["flow"].numpy()),
+        "tran_x_negative": float(sample["motion"][3] < 0),
     }
 
 
@@ -76,6 +82,8 @@ def dataset_statistics(datasets: list, n: int) -> dict[str, Any]:
         "valid_fraction": float(np.mean([r["valid_fraction"] for r in rows])),
         "visible_fraction": float(np.mean([r["visible_fraction"] for r in rows])),
         "median_depth": float(np.median([r["median_depth"] for r in rows])),
+        "zero_flow_epe": float(np.nanmean([r["zero_flow_epe"] for r in rows])),
+        "tran_x_negative_fraction": float(np.mean([r["tran_x_negative"] for r in rows])),
     }
 
 

@@ -513,10 +513,22 @@ def test_data_stats_command_writes_json(tmp_path):
     assert result.returncode == 0, result.stderr
     stats = json.loads(out.read_text())
     for key in ("n_pairs", "rot_mean_deg", "rot_std_deg", "tri_mean_deg", "tri_std_deg",
-                "valid_fraction", "visible_fraction", "median_depth"):
+                "valid_fraction", "visible_fraction", "median_depth", "zero_flow_epe", "tran_x_negative_fraction"):
         assert key in stats
     assert stats["n_pairs"] == 6 and stats["outdoor"] == "yes" and stats["perfect_gt"] == "yes"
     assert "Rot. avg" in result.stdout and "synthetic_mvs" in result.stdout
+
+
+def test_zero_flow_epe_is_the_mean_ground_truth_flow_length(rendered):
+    from demon_lab.data_stats import pair_statistics
+
+    rendered = rendered[0]
+    flow = rendered["flow"]
+    length = flow.double().norm(dim=0)
+    keep = torch.isfinite(length) & (length > 0)
+    stats = pair_statistics(rendered)
+    assert stats["zero_flow_epe"] == pytest.approx(float(length[keep].mean()), rel=1e-9)
+    assert stats["tran_x_negative"] == float(rendered["motion"][3] < 0)
 
 
 @pytest.mark.parametrize("args, message", [

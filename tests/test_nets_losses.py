@@ -257,3 +257,31 @@ def test_flow_stage_sig_terms_start_at_sig_start(sig_start):
     unit = sig[250] / expected[250]  # the full-weight sig term (ramp 1 at step 250 either way)
     assert sig == pytest.approx({s: unit * e for s, e in expected.items()}, rel=1e-5)
     assert (sig[149] == 0) == (sig_start == 0.5) and sig[151] > 0
+
+
+def test_flow_sig_gradient_swamps_the_flow_term_near_zero_flow():
+    """Why the cpu scale delays the flow stages' sig terms (conf/scale/cpu.yaml): with the released
+    code's weights, the gradient of flow2_sig on the predicted flow is hundreds of times the flow2
+    term's when the prediction is near zero (where an untrained flow net sits), and an order of
+    magnitude less so near the ground truth. ``pytest -s -k sig_gradient`` prints the ratios."""
+    from torch.utils.data import default_collate
+
+    from demon_lab.data.datasets import SyntheticDataset
+
+    torch.manual_seed(0)
+    weights = losses.check_weights(_preset("released_code"))
+    ds = SyntheticDataset("synthetic_sun3d", "train", length=8, size=(96, 128), supersample=1, cache_dir=False)
+    gt = losses.ground_truth(default_collate([{k: v for k, v in ds[i].items() if k != "id"} for i in range(8)]))
+    target = gt["flow2"]
+    noise = torch.randn_like(target)
+    ratios = {}
+    for name, pred in (("zero + 0.001", 1e-3 * noise), ("zero + 0.01", 1e-2 * noise),
+                       ("GT + 0.02", torch.nan_to_num(target) + 0.02 * noise),
+                       ("GT + 0.05", torch.nan_to_num(target) + 0.05 * noise)):
+        f = pred.clone().requires_grad_()
+        g_flow, = torch.autograd.grad(weights["flow"] * losses.pointwise_l2(f, target), f)
+        g_sig, = torch.autograd.grad(weights["flow_sig"] * losses.sig_loss(f, target), f)
+        ratios[name] = float(g_sig.norm() / g_flow.norm())
+    print("flow2_sig / flow2 gradient norm:", {k: round(v, 1) for k, v in ratios.items()})
+    assert ratios["zero + 0.001"] > 100 and ratios["zero + 0.01"] > 20
+    assert ratios["zero + 0.001"] > 5 * ratios["GT + 0.05"]

@@ -27,9 +27,10 @@ class FlowStage(StageModule):
     third; the level-5 losses fade out over it (spec section 4).
 
     ``sig_start`` (a fraction of the stage, default 0 as DeMoN) holds the sig weights at 0 until
-    then and starts their ramp there. A short schedule needs it: near zero flow the sig terms'
-    gradient is 50-800x the flow term's (README, "What the cpu scale gives"), and a 1/100 schedule
-    gives the net ~800 steps instead of DeMoN's ~80,000 to find correspondence before they weigh in.
+    then and starts their ramp there. A short schedule needs it: near zero flow the sig term's
+    gradient is ~55-250x the flow term's (11-18x near the ground truth; see the test
+    ``test_flow_sig_gradient_swamps_the_flow_term_near_zero_flow``), and a 1/100 schedule gives
+    the net ~800 steps instead of DeMoN's ~80,000 to find correspondence before it weighs in.
     """
 
     def __init__(self, *args, net: str = "flow1", sig_start: float = 0.0, **kwargs):
