@@ -37,11 +37,14 @@ def _changes_results(override: str) -> bool:
 
 
 def sweep_key(config: DictConfig) -> str:
-    """The sweep's identity: its experiment and the command-line overrides that change what its
-    jobs compute, so the same sweep re-issued with another thread count, store address or
-    launcher continues its parent run."""
+    """The sweep's identity: its experiment, the command-line overrides that change what its
+    jobs compute and the code and scene-generator versions (as in every run key), so the same
+    sweep re-issued with another thread count, store address or launcher continues its parent
+    run, and one re-issued after a version change starts a new parent."""
+    from demon_lab.stages.cache import versions
+
     overrides = sorted(o for o in config.hydra.overrides.task if _changes_results(o))
-    blob = json.dumps({"experiment": str(config.experiment), "overrides": overrides})
+    blob = json.dumps({"experiment": str(config.experiment), "overrides": overrides, **versions()})
     return hashlib.sha256(blob.encode()).hexdigest()[:16]
 
 

@@ -316,3 +316,19 @@ def test_the_same_config_and_seed_give_identical_metrics_on_cpu(tmp_path):
     _, _, a = _metrics(tmp_path / "a")
     _, _, b = _metrics(tmp_path / "b")
     assert len(a) > 20 and a == b
+
+
+def test_sweep_key_follows_what_the_jobs_compute_and_the_versions(monkeypatch):
+    from omegaconf import OmegaConf
+
+    from demon_lab.callbacks import sweep_key
+    from demon_lab.data import synthetic
+
+    def key(*overrides: str) -> str:
+        return sweep_key(OmegaConf.create({"experiment": "study", "hydra": {"overrides": {"task": list(overrides)}}}))
+
+    base = key("seed=0,1", "+experiment=study")
+    assert key("seed=0,1", "+experiment=study", "threads=1", "tracking=local_server") == base
+    assert key("seed=0,1,2", "+experiment=study") != base
+    monkeypatch.setattr(synthetic, "GENERATOR_VERSION", synthetic.GENERATOR_VERSION + 1)
+    assert key("seed=0,1", "+experiment=study") != base  # new scenes: a new parent run
