@@ -521,10 +521,10 @@ def report(name: str, uri: str, out_dir: Path, directory: Path = ABLATIONS) -> d
     """Writes the report of one spec; returns the written paths."""
     spec = load_spec(name, directory)
     experiments = sorted({t["experiment"] for t in spec["tables"]})
-    runs = fetch_runs(uri, experiments)
     current = version_tags()
-    stale = [r for r in runs if any(r.tags.get(k) != v for k, v in current.items())]
-    runs = [r for r in runs if all(r.tags.get(k) == v for k, v in current.items())]
+    runs, stale = [], []
+    for r in fetch_runs(uri, experiments):
+        (runs if all(r.tags.get(k) == v for k, v in current.items()) else stale).append(r)
     result = build(spec, runs)
     result["stale"] = sum(r.status == "FINISHED" for r in stale)
     result["versions"] = ", ".join(f"{k.removeprefix(TAG)} {v}" for k, v in current.items())

@@ -109,11 +109,11 @@ def train_stage(cfg: DictConfig, chain: DeMoN, stage: StageDir, logger: L.pytorc
     spec = cfg.schedule.stages[stage.name]
     kind = spec.kind
     kwargs = dict(steps=int(spec.steps), lr=float(spec.lr), lr_schedule=cfg.schedule.lr_schedule,
-                  weight_decay=float(cfg.schedule.weight_decay), warmup_steps=int(spec.get("warmup_steps") or 0))
+                  weight_decay=float(cfg.schedule.weight_decay), warmup_steps=int(spec.get("warmup_steps", 0)))
     if kind in ("flow", "depth_motion"):
         kwargs.update(net=spec.net, oracle=spec.get("oracle"))
         if kind == "flow":
-            kwargs.update(sig_start=float(spec.get("sig_start") or 0.0))
+            kwargs.update(sig_start=float(spec.get("sig_start", 0.0)))
     elif kind == "iterative":
         kwargs.update(queue_size=int(spec.queue_size))
     else:

@@ -101,9 +101,9 @@ def validate(cfg: DictConfig) -> None:
         _int(f"schedule.stages.{name}.steps", spec.steps, 1)
         _positive(f"schedule.stages.{name}.lr", spec.lr)
         _choice(f"schedule.stages.{name}.oracle", spec.get("oracle"), STAGE_ORACLES[spec.kind])
-        _int(f"schedule.stages.{name}.warmup_steps", spec.get("warmup_steps") or 0, 0)
+        _int(f"schedule.stages.{name}.warmup_steps", spec.get("warmup_steps", 0), 0)
         if spec.kind == "flow":
-            start = spec.get("sig_start") or 0.0
+            start = spec.get("sig_start", 0.0)
             if isinstance(start, bool) or not isinstance(start, (int, float)) or not 0 <= start < 1:
                 raise ConfigError(f"schedule.stages.{name}.sig_start: expected a fraction of the stage in "
                                   f"[0, 1), got {start!r}")

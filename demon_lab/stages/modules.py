@@ -29,8 +29,8 @@ class FlowStage(StageModule):
     ``sig_start`` (a fraction of the stage, default 0 as DeMoN) holds the sig weights at 0 until
     then and starts their ramp there. A short schedule needs it: near zero flow the sig term's
     gradient is ~55-250x the flow term's (11-18x near the ground truth; see the test
-    ``test_flow_sig_gradient_swamps_the_flow_term_near_zero_flow``), and a 1/100 schedule gives
-    the net ~800 steps instead of DeMoN's ~80,000 to find correspondence before it weighs in.
+    ``test_flow_sig_gradient_swamps_the_flow_term_near_zero_flow``), and a stage of 1/400 of
+    DeMoN's length gives the net ~830 steps instead of ~333,000 to find correspondence first.
     """
 
     def __init__(self, *args, net: str = "flow1", sig_start: float = 0.0, **kwargs):
