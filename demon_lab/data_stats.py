@@ -13,7 +13,9 @@ and seen in view 2); the median depth is the median over pairs of each pair's me
 depth, in the source's unit (metres for real data). ``zero_flow_epe`` is the mean over pairs of
 the EPE of predicting no flow (DeMoN's EPE, normalised units, full resolution): what a flow net
 must beat. ``tran_x_negative_fraction``: the share of pairs whose camera 2 moves to the left (about
-half for a source without a sideways bias). Samples are read at the source's native
+half for a source without a sideways bias). ``photometric_error``: the mean over pairs of the mean
+|image 1 - image 2 warped by the GT flow| over the visible pixels, in grey levels of 255 (how well
+brightness constancy holds: what ties the flow to the images). Samples are read at the source's native
 resolution (synthetic ones at the configured ``data.size``), without augmentation.
 
     python -m demon_lab.data_stats data=synthetic_sun3d n=500 out=stats.json
@@ -35,11 +37,14 @@ from omegaconf import DictConfig
 from demon_lab.config import ConfigError
 
 KEYS = ("n_pairs", "rot_mean_deg", "rot_std_deg", "tri_mean_deg", "tri_std_deg",
-        "valid_fraction", "visible_fraction", "median_depth", "zero_flow_epe", "tran_x_negative_fraction")
+        "valid_fraction", "visible_fraction", "median_depth", "zero_flow_epe", "tran_x_negative_fraction",
+        "photometric_error")
 
 
 def pair_statistics(sample: dict) -> dict[str, float]:
     """Rotation angle, median triangulation angle, fractions and median depth of one sample."""
+    import torch
+
     from demon_lab import geometry as geo
     from demon_lab.metrics import flow_epe
 
@@ -47,6 +52,10 @@ def pair_statistics(sample: dict) -> dict[str, float]:
     motion = sample["motion"][None].double()
     tri = geo.triangulation_angle(inv, motion, sample["intrinsics"][None].double()).numpy()
     valid = sample["valid"].numpy()
+    flow = torch.nan_to_num(sample["flow"], nan=0.0)[None]
+    warped = geo.warp_image(sample["image2"][None], flow)[0]
+    seen = sample["visible"][0] & (warped.abs().sum(0) > 0)  # 0: a neighbour fell outside image 2
+    photometric = (warped - sample["image1"]).abs().mean(0)[seen].mean().item() * 255
     return {
         "rot_deg": math.degrees(float(sample["motion"][:3].double().norm())),
         "tri_deg": float(np.nanmedian(tri)),
@@ -55,6 +64,7 @@ def pair_statistics(sample: dict) -> dict[str, float]:
         "median_depth": float(np.median(1.0 / inv.numpy()[valid[None]])),
         "zero_flow_epe": flow_epe(np.zeros_like(sample["flow"].numpy()), sample["flow"].numpy()),
         "tran_x_negative": float(sample["motion"][3] < 0),
+        "photometric_error": photometric,
     }
 
 
@@ -84,6 +94,7 @@ def dataset_statistics(datasets: list, n: int) -> dict[str, Any]:
         "median_depth": float(np.median([r["median_depth"] for r in rows])),
         "zero_flow_epe": float(np.nanmean([r["zero_flow_epe"] for r in rows])),
         "tran_x_negative_fraction": float(np.mean([r["tran_x_negative"] for r in rows])),
+        "photometric_error": float(np.nanmean([r["photometric_error"] for r in rows])),
     }
 
 

@@ -30,12 +30,15 @@ import numpy as np
 
 from demon_lab import geometry as geo
 from demon_lab.data.sample import make_sample
-from demon_lab.data.textures import sample_texture, texture_bank
+from demon_lab.data.textures import mip_bank, sample_filtered, texture_bank
 
 EPS = 1e-9
-GENERATOR_VERSION = 4
+GENERATOR_VERSION = 5
 """Bump when the scenes change: part of the data cache key, every stage key and every run key.
-4: camera 2 orbits the target in either sense (before: always the same sense, so t_x < 0)."""
+4: camera 2 orbits the target in either sense (before: always the same sense, so t_x < 0).
+5: textures are mip-mapped to each pixel's footprint (before, a tile of 256 texels could cover 10
+px: the views aliased differently), tiles span 0.6-1.5 camera distances (before 0.5-3 m in every
+preset: tens of repeats), procedural tiles and stripes take a colour per cell (before: periodic)."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -134,10 +137,13 @@ def _rot_axis(axis: np.ndarray, angle: float) -> np.ndarray:
 
 def random_scene(rng: np.random.Generator, preset: Preset) -> Scene:
     n_tex = len(texture_bank())
+    # A texture tile spans 0.6-1.5 camera distances: ~70-170 % of the image width at the look-at
+    # point (about one texel per pixel there), so a surface repeats its tile a few times at most.
+    tile = (preset.distance[0] + preset.distance[1]) / 2
 
     def material() -> dict:
         tint = 0.6 + 0.4 * rng.random(3)
-        return {"texture": int(rng.integers(n_tex)), "texture_scale": float(rng.uniform(0.5, 3.0)),
+        return {"texture": int(rng.integers(n_tex)), "texture_scale": float(rng.uniform(0.6, 1.5)) * tile,
                 "tint": tint}
 
     prims: list[Primitive] = []
@@ -266,10 +272,15 @@ def cast(scene: Scene, origin: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray
     return best, index, normal, local
 
 
-def shade(scene: Scene, dirs: np.ndarray, index: np.ndarray, normal: np.ndarray,
-          local: np.ndarray) -> np.ndarray:
-    """Lambertian colour of each hit (N, 3) in [0, 1]; rays that hit nothing see the sky."""
-    bank = texture_bank()
+def shade(scene: Scene, dirs: np.ndarray, t: np.ndarray, index: np.ndarray, normal: np.ndarray,
+          local: np.ndarray, pixel: float) -> np.ndarray:
+    """Lambertian colour of each hit (N, 3) in [0, 1]; rays that hit nothing see the sky.
+
+    ``dirs`` have camera-z component 1 and ``t`` is the camera-z depth of the hit; ``pixel`` is the
+    size of a pixel (of this sampling grid) at depth 1, so a pixel covers ``t * pixel`` across the
+    ray, stretched by 1 / cos(incidence) along the surface. Textures are filtered to that
+    footprint (the geometric mean of its two axes: sqrt(cos) in the denominator)."""
+    bank = mip_bank()
     colour = np.zeros((dirs.shape[0], 3))
     norm = np.sqrt(dirs[:, 0] * dirs[:, 0] + dirs[:, 1] * dirs[:, 1] + dirs[:, 2] * dirs[:, 2])
     up = np.clip(dirs[:, 2] / norm, 0.0, 1.0)[:, None]
@@ -287,7 +298,11 @@ def shade(scene: Scene, dirs: np.ndarray, index: np.ndarray, normal: np.ndarray,
         axis = ln.argmax(1)
         u = np.where(axis == 0, loc[:, 1], loc[:, 0])
         v = np.where(axis == 2, loc[:, 1], loc[:, 2])
-        albedo = sample_texture(bank[p.texture], u / p.texture_scale, v / p.texture_scale) * p.tint
+        d = dirs[m]
+        dn = np.abs(d[:, 0] * nrm[:, 0] + d[:, 1] * nrm[:, 1] + d[:, 2] * nrm[:, 2])
+        cos = np.maximum(dn / np.sqrt(d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1] + d[:, 2] * d[:, 2]), 1e-3)
+        texels = t[m] * pixel / np.sqrt(cos) * (bank[p.texture][0].shape[0] / p.texture_scale)
+        albedo = sample_filtered(bank[p.texture], u / p.texture_scale, v / p.texture_scale, texels) * p.tint
         colour[m] = albedo * intensity[m, None]
     return colour
 
@@ -403,14 +418,15 @@ def render_view(scene: Scene, camera: Camera, size: tuple[int, int], supersample
     t, index, normal, local = cast(scene, camera.center, centre)
     # Ray directions have camera-z component 1, so the ray parameter is the camera-z depth.
     depth = t.reshape(height, width)
+    pixel = 1.0 / (INTRINSICS[0] * width * max(supersample, 1))  # sample spacing at depth 1
     if supersample <= 1:
-        colour = shade(scene, centre, index, normal, local)
+        colour = shade(scene, centre, t, index, normal, local, pixel)
     else:
         offsets = [((i + 0.5) / supersample, (j + 0.5) / supersample)
                    for j in range(supersample) for i in range(supersample)]
         colour = np.zeros((height * width, 3))
         for dirs in _pixel_rays(camera, size, offsets):
-            colour += shade(scene, dirs, *cast(scene, camera.center, dirs)[1:])
+            colour += shade(scene, dirs, *cast(scene, camera.center, dirs), pixel)
         colour /= len(offsets)
     points = camera.center[None] + np.where(np.isfinite(t), t, 0.0)[:, None] * centre
     return colour.reshape(height, width, 3), depth, points

@@ -55,19 +55,22 @@ def _value_noise(rng: np.random.Generator, cells: int) -> np.ndarray:
 
 
 def _procedural(k: int) -> np.ndarray:
+    """Procedural texture ``k``. Tiles and stripes take a random colour per cell, so no patch of a
+    tile repeats inside it (a periodic pattern makes correspondence ambiguous)."""
     rng = np.random.default_rng(1000 + k)
     kind = k % 4
     yy, xx = np.meshgrid(np.arange(SIZE), np.arange(SIZE), indexing="ij")
-    c1, c2 = rng.random(3), rng.random(3)
-    if kind == 0:  # checker with noise
-        cell = int(rng.integers(8, 48))
-        m = ((xx // cell + yy // cell) % 2).astype(np.float64)[..., None]
-        base = m * c1 + (1 - m) * c2
+    if kind == 0:  # tiles of random colours, with noise
+        cells = 2 ** int(rng.integers(2, 5))  # 4, 8 or 16 per side
+        palette = rng.random((cells, cells, 3))
+        base = palette[yy // (SIZE // cells), xx // (SIZE // cells)]
         return np.clip(0.75 * base + 0.25 * _value_noise(rng, 16), 0, 1)
-    if kind == 1:  # stripes
+    if kind == 1:  # stripes of random colours, with noise
         period = int(rng.integers(6, 40))
-        m = ((xx + (yy * int(rng.integers(0, 3)))) // period % 2).astype(np.float64)[..., None]
-        return np.clip(0.7 * (m * c1 + (1 - m) * c2) + 0.3 * _value_noise(rng, 8), 0, 1)
+        index = (xx + yy * int(rng.integers(0, 3))) // period
+        palette = rng.random((int(index.max()) + 1, 3))
+        return np.clip(0.7 * palette[index] + 0.3 * _value_noise(rng, 8), 0, 1)
+    c1, c2 = rng.random(3), rng.random(3)
     if kind == 2:  # multi-octave noise
         a = sum(_value_noise(rng, c) / (i + 1) for i, c in enumerate((4, 8, 16, 32, 64)))
         a = (a - a.min()) / (a.max() - a.min())
@@ -83,14 +86,50 @@ def texture_bank() -> tuple[np.ndarray, ...]:
     return tuple([_photo(n) for n in PHOTOS] + [_procedural(k) for k in range(N_PROCEDURAL)])
 
 
+def mip_pyramid(texture: np.ndarray) -> tuple[np.ndarray, ...]:
+    """The texture and its 2x2 box-filtered reductions down to 1 x 1 (exact arithmetic)."""
+    levels = [texture]
+    while levels[-1].shape[0] > 1:
+        a = levels[-1]
+        levels.append((a[0::2, 0::2] + a[1::2, 0::2] + a[0::2, 1::2] + a[1::2, 1::2]) / 4)
+    return tuple(levels)
+
+
+@functools.lru_cache(maxsize=1)
+def mip_bank() -> tuple[tuple[np.ndarray, ...], ...]:
+    """:func:`mip_pyramid` of every texture of :func:`texture_bank`."""
+    return tuple(mip_pyramid(t) for t in texture_bank())
+
+
 def sample_texture(texture: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
     """Bilinear lookup with wrap-around; u, v in texture periods (1 = one tile). (N,) -> (N, 3)."""
-    x = u * SIZE - 0.5
-    y = v * SIZE - 0.5
+    size = texture.shape[0]
+    x = u * size - 0.5
+    y = v * size - 0.5
     x0, y0 = np.floor(x), np.floor(y)
     fx, fy = (x - x0)[:, None], (y - y0)[:, None]
-    x0 = x0.astype(np.int64) % SIZE
-    y0 = y0.astype(np.int64) % SIZE
-    x1, y1 = (x0 + 1) % SIZE, (y0 + 1) % SIZE
+    x0 = x0.astype(np.int64) % size
+    y0 = y0.astype(np.int64) % size
+    x1, y1 = (x0 + 1) % size, (y0 + 1) % size
     return ((texture[y0, x0] * (1 - fx) + texture[y0, x1] * fx) * (1 - fy)
             + (texture[y1, x0] * (1 - fx) + texture[y1, x1] * fx) * fy)
+
+
+def sample_filtered(pyramid: tuple[np.ndarray, ...], u: np.ndarray, v: np.ndarray,
+                    footprint: np.ndarray) -> np.ndarray:
+    """Trilinear mip-mapped lookup: ``footprint`` is the size of the pixel's footprint in texels
+    of level 0 (N,); the lookup blends the two levels around it, linearly in the footprint, so a
+    minified texture is averaged over the pixel instead of aliasing (which would make the two
+    views of a surface disagree). Only +, -, *, / and comparisons: identical everywhere."""
+    top = len(pyramid) - 1
+    level = np.zeros(u.shape[0], dtype=np.int64)
+    for k in range(1, top + 1):
+        level += footprint >= 2.0 ** k
+    frac = np.clip(footprint / 2.0 ** level - 1, 0.0, 1.0)[:, None]
+    out = np.zeros((u.shape[0], 3))
+    for lv in np.unique(level):
+        m = level == lv
+        lo = sample_texture(pyramid[lv], u[m], v[m])
+        hi = sample_texture(pyramid[min(lv + 1, top)], u[m], v[m])
+        out[m] = lo * (1 - frac[m]) + hi * frac[m]
+    return out
