@@ -15,7 +15,10 @@ the EPE of predicting no flow (DeMoN's EPE, normalised units, full resolution): 
 must beat. ``tran_x_negative_fraction``: the share of pairs whose camera 2 moves to the left (about
 half for a source without a sideways bias). ``photometric_error``: the mean over pairs of the mean
 |image 1 - image 2 warped by the GT flow| over the visible pixels, in grey levels of 255 (how well
-brightness constancy holds: what ties the flow to the images). Samples are read at the source's native
+brightness constancy holds: what ties the flow to the images). ``near_camera2_fraction``: the share
+of pairs with a valid view-1 point at camera-2 depth z2 < 0.1 z1 (near or behind camera 2's image
+plane), where the ground-truth flow (DeMoN's ``depth_to_flow``, no check of z2) grows without
+bound and one pair can dominate a training batch's flow loss. Samples are read at the source's native
 resolution (synthetic ones at the configured ``data.size``), without augmentation.
 
     python -m demon_lab.data_stats data=synthetic_sun3d n=500 out=stats.json
@@ -38,7 +41,7 @@ from demon_lab.config import ConfigError
 
 KEYS = ("n_pairs", "rot_mean_deg", "rot_std_deg", "tri_mean_deg", "tri_std_deg",
         "valid_fraction", "visible_fraction", "median_depth", "zero_flow_epe", "tran_x_negative_fraction",
-        "photometric_error")
+        "photometric_error", "near_camera2_fraction")
 
 
 def pair_statistics(sample: dict) -> dict[str, float]:
@@ -56,6 +59,9 @@ def pair_statistics(sample: dict) -> dict[str, float]:
     warped = geo.warp_image(sample["image2"][None], flow)[0]
     seen = sample["visible"][0] & (warped.abs().sum(0) > 0)  # 0: a neighbour fell outside image 2
     photometric = (warped - sample["image1"]).abs().mean(0)[seen].mean().item() * 255
+    _, inv2 = geo.reproject(inv, motion, sample["intrinsics"][None].double(),
+                            sample["intrinsics2"][None].double())
+    near = bool((inv / inv2 < 0.1).any())  # z2 / z1 = inv1 / inv2; NaN (invalid depth) compares False
     return {
         "rot_deg": math.degrees(float(sample["motion"][:3].double().norm())),
         "tri_deg": float(np.nanmedian(tri)),
@@ -65,6 +71,7 @@ def pair_statistics(sample: dict) -> dict[str, float]:
         "zero_flow_epe": flow_epe(np.zeros_like(sample["flow"].numpy()), sample["flow"].numpy()),
         "tran_x_negative": float(sample["motion"][3] < 0),
         "photometric_error": photometric,
+        "near_camera2": float(near),
     }
 
 
@@ -95,6 +102,7 @@ def dataset_statistics(datasets: list, n: int) -> dict[str, Any]:
         "zero_flow_epe": float(np.nanmean([r["zero_flow_epe"] for r in rows])),
         "tran_x_negative_fraction": float(np.mean([r["tran_x_negative"] for r in rows])),
         "photometric_error": float(np.nanmean([r["photometric_error"] for r in rows])),
+        "near_camera2_fraction": float(np.mean([r["near_camera2"] for r in rows])),
     }
 
 

@@ -560,7 +560,7 @@ def test_data_stats_command_writes_json(tmp_path):
     stats = json.loads(out.read_text())
     for key in ("n_pairs", "rot_mean_deg", "rot_std_deg", "tri_mean_deg", "tri_std_deg",
                 "valid_fraction", "visible_fraction", "median_depth", "zero_flow_epe", "tran_x_negative_fraction",
-                "photometric_error"):
+                "photometric_error", "near_camera2_fraction"):
         assert key in stats
     assert stats["n_pairs"] == 6 and stats["outdoor"] == "yes" and stats["perfect_gt"] == "yes"
     assert "Rot. avg" in result.stdout and "synthetic_mvs" in result.stdout
@@ -577,6 +577,19 @@ def test_zero_flow_epe_is_the_mean_ground_truth_flow_length(rendered):
     assert stats["zero_flow_epe"] == pytest.approx(float(length[keep].mean()), rel=1e-9)
     assert stats["tran_x_negative"] == float(rendered["motion"][3] < 0)
     assert stats["photometric_error"] == pytest.approx(_photometric_error(rendered)[0] * 255, rel=1e-6)
+
+
+@pytest.mark.parametrize("t_z, near", [(-0.5, 0.0), (-0.95, 1.0), (-1.5, 1.0)])
+def test_pairs_with_points_near_or_behind_camera_2_are_counted(t_z, near):
+    """Every point at depth 1 in view 1; camera 2 moves forward by -t_z: z2 = 1 + t_z."""
+    from demon_lab.data_stats import pair_statistics
+
+    image = np.zeros((8, 8, 3), np.uint8)
+    sample = smp.make_sample("plane", image, image, geo.DEMON_INTRINSICS, np.ones((8, 8)), [0, 0, 0, 0, 0, t_z])
+    stats = pair_statistics(sample)
+    assert stats["near_camera2"] == near
+    if near:  # DeMoN's GT flow has no check of z2: it explodes there
+        assert float(torch.nan_to_num(sample["flow"]).abs().max()) > 1
 
 
 @pytest.mark.parametrize("args, message", [
