@@ -202,7 +202,10 @@ def controlled_pair(preset: str, seed: int, size=(192, 256), baseline: float = 0
 
 @pytest.fixture(scope="module")
 def known_motion_pair():
-    return controlled_pair("synthetic_scenes11", 1)
+    """A room (textured walls and floor: several planes, 309 SIFT keypoints at 256x192). Outdoor
+    scenes of scene generator 5 put nearly every keypoint on the ground plane, a degenerate
+    configuration for the fundamental matrix (scenes11 seeds 0-3: Base-SIFT rotation 3-6 deg)."""
+    return controlled_pair("synthetic_sun3d", 1)
 
 
 @pytest.mark.parametrize("method", ["base_ff", "base_sift", "base_mat_f"])
