@@ -2,7 +2,8 @@
 
 Everything is built from bytes that ship with scikit-image and from numpy's PCG64 generator with
 basic arithmetic only, so the bank is identical on every machine (no download, no resampling
-library whose SIMD paths could round differently).
+library whose SIMD paths could round differently). Lookups are filtered to the pixel's footprint
+(:func:`sample_filtered` on :func:`mip_bank`), so that a minified texture does not alias.
 """
 
 from __future__ import annotations
