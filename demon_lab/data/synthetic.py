@@ -300,7 +300,7 @@ def shade(scene: Scene, dirs: np.ndarray, t: np.ndarray, index: np.ndarray, norm
         v = np.where(axis == 2, loc[:, 1], loc[:, 2])
         d = dirs[m]
         dn = np.abs(d[:, 0] * nrm[:, 0] + d[:, 1] * nrm[:, 1] + d[:, 2] * nrm[:, 2])
-        cos = np.maximum(dn / np.sqrt(d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1] + d[:, 2] * d[:, 2]), 1e-3)
+        cos = np.maximum(dn / norm[m], 1e-3)
         texels = t[m] * pixel / np.sqrt(cos) * (bank[p.texture][0].shape[0] / p.texture_scale)
         albedo = sample_filtered(bank[p.texture], u / p.texture_scale, v / p.texture_scale, texels) * p.tint
         colour[m] = albedo * intensity[m, None]
