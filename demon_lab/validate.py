@@ -104,9 +104,9 @@ def validate(cfg: DictConfig) -> None:
         _int(f"schedule.stages.{name}.warmup_steps", spec.get("warmup_steps", 0), 0)
         if spec.kind == "flow":
             start = spec.get("sig_start", 0.0)
-            if isinstance(start, bool) or not isinstance(start, (int, float)) or not 0 <= start < 1:
+            if isinstance(start, bool) or not isinstance(start, (int, float)) or not 0 <= start <= 1:
                 raise ConfigError(f"schedule.stages.{name}.sig_start: expected a fraction of the stage in "
-                                  f"[0, 1), got {start!r}")
+                                  f"[0, 1] (1: never), got {start!r}")
     try:
         check_weights(OmegaConf.to_container(cfg.loss, resolve=True))
     except ValueError as e:

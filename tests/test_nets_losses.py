@@ -233,7 +233,7 @@ def test_warmup_rises_linearly_to_the_schedule():
     assert learning_rate(2999, 3000, 1e-3, "released", warmup_steps=100) == learning_rate(2999, 3000, 1e-3, "released")
 
 
-@pytest.mark.parametrize("sig_start", [0.0, 0.5])
+@pytest.mark.parametrize("sig_start", [0.0, 0.5, 1.0])
 def test_flow_stage_sig_terms_start_at_sig_start(sig_start):
     from unittest import mock
 
@@ -249,10 +249,13 @@ def test_flow_stage_sig_terms_start_at_sig_start(sig_start):
     batch = default_collate([{k: v for k, v in ds[i].items() if k != "id"} for i in range(2)])
     gt = losses.ground_truth(batch)
     sig = {}
-    for step in (0, 100, 149, 151, 250):
+    for step in (0, 100, 149, 151, 250, 299):
         with mock.patch.object(FlowStage, "global_step", new_callable=mock.PropertyMock, return_value=step):
             _, terms = stage.stage_loss(batch, gt)
         sig[step] = float(terms["flow2_sig"])
+    if sig_start == 1.0:  # never: the whole stage trains without the sig terms
+        assert set(sig.values()) == {0.0}
+        return
     expected = {s: losses.ease_out_quad(max(s - sig_start * 300, 0), 100) for s in sig}
     unit = sig[250] / expected[250]  # the full-weight sig term (ramp 1 at step 250 either way)
     assert sig == pytest.approx({s: unit * e for s, e in expected.items()}, rel=1e-5)

@@ -159,7 +159,7 @@ def test_a_job_that_raises_leaves_its_run_failed(tmp_path):
     (["-m", "iterations=0,1,-2"], "iterations: expected an integer >= 0, got -2"),
     (["schedule.until=dm1"], "iterations: expected 0 when schedule.until=dm1"),
     (["schedule.stages.flow1.sig_start=1.5"],
-     "schedule.stages.flow1.sig_start: expected a fraction of the stage in [0, 1)"),
+     "schedule.stages.flow1.sig_start: expected a fraction of the stage in [0, 1] (1: never)"),
     (["schedule.stages.flow1.warmup_steps=-5"], "schedule.stages.flow1.warmup_steps: expected an integer >= 0"),
 ])
 def test_bad_configuration_is_one_line_before_any_work(args, message, tmp_path):

@@ -10,7 +10,8 @@ occlusion-aware visibility are exact.
 Camera pairs follow presets whose rotation and triangulation-angle statistics reproduce the
 supplementary's Table 1 (``python -m demon_lab.data_stats`` measures them). Pairs are filtered as
 the supplementary describes: at least 50 % of view-1 pixels visible in view 2 and a minimum
-baseline.
+baseline; and no view-1 point may come closer to camera 2 than a tenth of its view-1 depth (its
+ground-truth flow would be unbounded).
 
 Determinism: a sample is a pure function of (preset, seed, size). Per-pixel work uses only
 correctly rounded IEEE operations (+, -, *, /, sqrt, floor) in float64 numpy, with no BLAS and
@@ -33,7 +34,7 @@ from demon_lab.data.sample import make_sample
 from demon_lab.data.textures import mip_bank, sample_filtered, texture_bank
 
 EPS = 1e-9
-GENERATOR_VERSION = 5
+GENERATOR_VERSION = 6
 """Bump when the scenes change: part of the data cache key, every stage key and every run key.
 4: camera 2 orbits the target in either sense (before: always the same sense, so t_x < 0).
 5: textures are mip-mapped to each pixel's footprint (before, a tile of 256 texels could cover 10
@@ -58,6 +59,7 @@ class Preset:
     object_size: tuple[float, float]
     min_baseline: float = 0.05
     min_visible: float = 0.5
+    min_depth_ratio: float = 0.1  # every valid view-1 point: depth in camera 2 >= this x depth in camera 1
     photorealistic: bool = False
     perfect_gt: bool = True
 
@@ -449,6 +451,14 @@ def visibility(scene: Scene, points: np.ndarray, valid: np.ndarray, camera: Came
     return out
 
 
+def depth_ratio_ok(points: np.ndarray, depth1: np.ndarray, camera2: Camera, min_ratio: float) -> bool:
+    """True when every world point's camera-2 depth is at least ``min_ratio`` times its camera-1
+    depth ``depth1``. Ground-truth flow divides by the camera-2 depth, so a point near (or behind)
+    camera 2 would give flow of hundreds of image widths."""
+    z2 = _matvec(camera2.rotation, points - camera2.center[None])[:, 2]
+    return bool(np.all(z2 >= min_ratio * depth1))
+
+
 def render_pair(preset: Preset | str, seed: int, size: tuple[int, int] = (96, 128),
                 supersample: int = 2, max_tries: int = 50, return_scene: bool = False):
     """The synthetic sample of ``seed``: a scene and a camera pair that pass the pair filters.
@@ -478,6 +488,8 @@ def render_pair(preset: Preset | str, seed: int, size: tuple[int, int] = (96, 12
             valid = np.isfinite(depth1).reshape(-1)
             visible = visibility(scene, points1, valid, cam2, size)
             if visible.mean() < preset.min_visible:
+                continue
+            if not depth_ratio_ok(points1[valid], depth1.reshape(-1)[valid], cam2, preset.min_depth_ratio):
                 continue
             image2, depth2, _ = render_view(scene, cam2, size, supersample)
             quantise = lambda im: np.floor(np.clip(im, 0, 1) * 255 + 0.5).astype(np.uint8)  # noqa: E731

@@ -26,7 +26,7 @@ class FlowStage(StageModule):
     net, or from ground truth with ``oracle='depth_motion'``). Sig weights ramp in over the first
     third; the level-5 losses fade out over it (spec section 4).
 
-    ``sig_start`` (a fraction of the stage, default 0 as DeMoN) holds the sig weights at 0 until
+    ``sig_start`` (a fraction of the stage, default 0 as DeMoN; 1: never) holds the sig weights at 0 until
     then and starts their ramp there. A short schedule needs it: near zero flow the sig term's
     gradient is ~55-250x the flow term's (11-18x near the ground truth; see the test
     ``test_flow_sig_gradient_swamps_the_flow_term_near_zero_flow``), and a stage of 1/400 of
