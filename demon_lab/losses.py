@@ -20,6 +20,12 @@ from demon_lab import geometry as geo
 EPS = 1e-5
 WEIGHT_KEYS = ("flow", "flow_conf", "flow_sig", "flow_conf_sig", "depth", "depth_sig", "normals",
                "rotation", "translation", "refine_depth", "refine_depth_sig", "refine_normals")
+FLOW_WEIGHTS = ("flow", "flow_conf", "flow_sig", "flow_conf_sig")
+DEPTH_MOTION_WEIGHTS = ("depth", "depth_sig", "normals", "rotation", "translation")
+REFINE_WEIGHTS = ("refine_depth", "refine_depth_sig", "refine_normals")
+STAGE_WEIGHTS = {"flow": FLOW_WEIGHTS, "depth_motion": DEPTH_MOTION_WEIGHTS,
+                 "iterative": FLOW_WEIGHTS + DEPTH_MOTION_WEIGHTS, "refine": REFINE_WEIGHTS}
+"""The weights each stage kind's loss reads (and so the ones in its stage key)."""
 Terms = dict[str, torch.Tensor]
 
 

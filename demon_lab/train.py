@@ -14,6 +14,7 @@ from typing import Any
 import lightning as L
 from omegaconf import DictConfig, OmegaConf
 
+from demon_lab import losses
 from demon_lab.nets.chain import DeMoN
 from demon_lab.stages.cache import CheckpointError, StageDir, atomic_checkpoint_io, load_checkpoint, stage_key
 from demon_lab.stages.modules import STAGE_KINDS
@@ -68,7 +69,9 @@ def describe_stage(cfg: DictConfig, name: str, upstream: dict[str, str]) -> dict
         "optimisation": {k: cfg.schedule[k] for k in ("lr_schedule", "weight_decay", "grad_clip")},
         "batch_size": cfg.schedule.stages[name].get("batch_size") or cfg.data.batch_size,
         "model": {**plain(cfg.model), "size": list(cfg.data.size)},
-        "loss": plain(cfg.loss),
+        # Only the weights this stage's loss reads: ablations that change another stage's terms
+        # (no_normals for the flow stages, say) share this stage.
+        "loss": {k: float(cfg.loss[k]) for k in losses.STAGE_WEIGHTS[cfg.schedule.stages[name].kind]},
         "train_data": plain(cfg.data.train),
         "seed": cfg.seed,
         "upstream": dict(upstream),

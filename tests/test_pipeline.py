@@ -214,6 +214,24 @@ def test_longer_oracle_study_trains_dm1_four_times_the_profile_and_shares_flow1(
     assert flow1.key == flow1_long.key and dm1.key != dm1_long.key
 
 
+def test_a_stage_key_holds_only_the_loss_weights_that_stage_reads():
+    """The loss-weight study's presets share every stage whose loss they leave unchanged:
+    no_normals and depth_sig_1000 change depth-motion weights only, so they share supplementary's
+    flow1 and train their own dm1; no_confidence changes the flow weights, so its flow1 (and,
+    through the upstream key, its dm1) is its own."""
+    from demon_lab.train import stage_dirs
+
+    keys = {}
+    with initialize_config_dir(CONF, version_base="1.3"):
+        for loss in ("supplementary", "no_normals", "depth_sig_1000", "no_confidence"):
+            cfg = compose("config", ["scale=cpu", "+experiment=loss_weights", f"loss={loss}"])
+            keys[loss] = [d.key for d in stage_dirs(cfg)]
+    flow1 = {loss: k[0] for loss, k in keys.items()}
+    dm1 = {loss: k[1] for loss, k in keys.items()}
+    assert flow1["no_normals"] == flow1["depth_sig_1000"] == flow1["supplementary"] != flow1["no_confidence"]
+    assert len(set(dm1.values())) == 4
+
+
 def test_times_resolver_takes_integers_only():
     from omegaconf import OmegaConf
     from omegaconf.errors import InterpolationResolutionError
