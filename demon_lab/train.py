@@ -118,7 +118,7 @@ def train_stage(cfg: DictConfig, chain: DeMoN, stage: StageDir, logger: L.pytorc
         if kind == "flow":
             kwargs.update(sig_start=float(spec.get("sig_start", 0.0)))
     elif kind == "iterative":
-        kwargs.update(queue_size=int(spec.queue_size))
+        kwargs.update(queue_size=int(spec.queue_size), sig_start=float(spec.get("sig_start", 0.0)))
     else:
         kwargs.update(iterations=int(spec.iterations))
     module = STAGE_KINDS[kind](chain, weights=OmegaConf.to_container(cfg.loss, resolve=True), **kwargs)

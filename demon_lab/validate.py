@@ -102,7 +102,7 @@ def validate(cfg: DictConfig) -> None:
         _positive(f"schedule.stages.{name}.lr", spec.lr)
         _choice(f"schedule.stages.{name}.oracle", spec.get("oracle"), STAGE_ORACLES[spec.kind])
         _int(f"schedule.stages.{name}.warmup_steps", spec.get("warmup_steps", 0), 0)
-        if spec.kind == "flow":
+        if spec.kind in ("flow", "iterative"):
             start = spec.get("sig_start", 0.0)
             if isinstance(start, bool) or not isinstance(start, (int, float)) or not 0 <= start <= 1:
                 raise ConfigError(f"schedule.stages.{name}.sig_start: expected a fraction of the stage in "

@@ -262,6 +262,31 @@ def test_flow_stage_sig_terms_start_at_sig_start(sig_start):
     assert (sig[149] == 0) == (sig_start == 0.5) and sig[151] > 0
 
 
+@pytest.mark.parametrize("sig_start", [0.0, 0.5, 1.0])
+def test_iterative_stage_flow_sig_terms_start_at_sig_start(sig_start):
+    """DeMoN's iterative stage starts at full weights (sig_start 0); with sig_start the flow sig
+    terms are 0 before that fraction of the stage and at full weight after; depth-sig unaffected."""
+    from unittest import mock
+
+    from torch.utils.data import default_collate
+
+    from demon_lab.data.datasets import SyntheticDataset
+    from demon_lab.stages.modules import IterativeStage
+
+    torch.manual_seed(0)
+    chain = DeMoN("v1", width=0.0625, size=(64, 64))
+    stage = IterativeStage(chain, weights=_preset("released_code"), steps=300, lr=1e-3, queue_size=0,
+                           sig_start=sig_start)
+    ds = SyntheticDataset("synthetic_sun3d", "train", length=2, size=(64, 64), supersample=1, cache_dir=False)
+    batch = default_collate([{k: v for k, v in ds[i].items() if k != "id"} for i in range(2)])
+    for step in (0, 149, 151, 299):
+        with mock.patch.object(IterativeStage, "global_step", new_callable=mock.PropertyMock, return_value=step):
+            _, terms = stage.stage_loss(batch, None)
+        on = step >= sig_start * 300
+        assert (float(terms["flow2_sig"]) > 0) == on and (float(terms["conf2_sig"]) > 0) == on
+        assert float(terms["depth2_sig"]) > 0
+
+
 def test_flow_sig_gradient_swamps_the_flow_term_near_zero_flow():
     """Why the cpu scale delays the flow stages' sig terms (conf/scale/cpu.yaml): with the released
     code's weights, the gradient of flow2_sig on the predicted flow is hundreds of times the flow2

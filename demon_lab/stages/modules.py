@@ -93,11 +93,15 @@ class IterativeStage(StageModule):
     is their own last dm2 output); after the step the first ``queue_size`` of these, with their
     new dm2 outputs, are queued. So every sample passes the iterative net several times without
     back-propagation between passes. DeMoN: 8 new + 24 queued = 32, i.e. 4 passes per sample.
+
+    The stage starts where DeMoN's ramps have ended: every weight at full value. ``sig_start`` (a
+    fraction of the stage, default 0; 1: never) holds the flow loss's sig weights at 0 until then,
+    as for :class:`FlowStage`; the depth-sig weight is not affected.
     """
 
-    def __init__(self, *args, queue_size: int = 24, **kwargs):
+    def __init__(self, *args, queue_size: int = 24, sig_start: float = 0.0, **kwargs):
         super().__init__(*args, trained=["flow2", "dm2"], **kwargs)
-        self.queue_size = int(queue_size)
+        self.queue_size, self.sig_start = int(queue_size), float(sig_start)
         self.queue: list[tuple[dict, Prediction]] = []
 
     def stage_loss(self, batch, gt):
@@ -113,9 +117,10 @@ class IterativeStage(StageModule):
         gt_all = losses.ground_truth(merged)
         pair, image2_2, K = self.inputs(merged)
         out = self.chain.iterate(pair, image2_2, K, prev_all)
+        flow_sig = float(self.global_step >= self.sig_start * self.steps)
         flow_total, flow_terms = losses.flow_loss(torch.cat([out.flow5, out.conf5], 1),
                                                   torch.cat([out.flow, out.conf], 1), gt_all,
-                                                  self.weights, ramp=1.0, level5=0.0)
+                                                  self.weights, ramp=flow_sig, level5=0.0)
         dm_total, dm_terms = losses.depth_motion_loss(out.inv_depth, out.normals, out.motion, gt_all,
                                                       self.weights, ramp=1.0)
         detached = Prediction(*(t.detach() for t in (out.flow, out.conf, out.flow5, out.conf5,
