@@ -256,7 +256,9 @@ def write_markdown(spec, result, info, failed, paper_rows) -> str:
     report_cmd = f"python -m demon_lab.report {spec['name']}"
     w("- reproduce: " + "; ".join(f"`{c}`" for c in info["commands"]) + f"; then `{report_cmd}`"
       + f" (or both at once: `{report_cmd} --run`)\n")
-    w("- cells: mean ± 95 % confidence half-width (t-interval over seeds), n = seeds; "
+    w("- cells: mean ± 95 % confidence half-width (t-interval over seeds), n = seeds (a cell marked "
+      "(n = k) has fewer: the other seeds' runs logged no finite value there, e.g. no pixel of positive "
+      "depth); "
       "depth metrics on unit-baseline depth, rot/tran in degrees, EPE in normalised flow units\n")
     if spec.get("paper_note"):
         w(f"- paper: {spec['paper_note']}\n")
@@ -277,6 +279,8 @@ def write_markdown(spec, result, info, failed, paper_rows) -> str:
                 for c in table["columns"]:
                     cell = entry[c]
                     text = _fmt(cell.mean) + (f" ± {_fmt(cell.ci95)}" if cell.n > 1 else "")
+                    if 0 < cell.n < n:  # some seeds have no finite value here (say, no valid pixel)
+                        text += f" (n = {cell.n})"
                     cells.append(text)
                 w(f"| {row['label']} | {n} | " + " | ".join(cells) + " |\n")
                 paper = paper_cells(paper_rows, row.get("paper"), paper_dataset, table["columns"])
@@ -349,8 +353,9 @@ def write_tex(spec, result, info, paper_rows) -> str:
             w(" & ".join(["", *[tex_label.get(c, esc(c)) for c in cols]]) + " \\\\\\midrule\n")
             for row in table["rows"]:
                 entry = rows[row["label"]]
+                n = max((entry[c].n for c in cols), default=0)
                 cells = [_fmt(entry[c].mean) + (f" $\\pm$ {_fmt(entry[c].ci95)}" if entry[c].n > 1 else "")
-                         for c in cols]
+                         + (f" ($n={entry[c].n}$)" if 0 < entry[c].n < n else "") for c in cols]
                 w(" & ".join([esc(row["label"]), *cells]) + " \\\\\n")
                 paper = paper_cells(paper_rows, row.get("paper"), paper_dataset, cols)
                 if paper:

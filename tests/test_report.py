@@ -123,6 +123,23 @@ def test_report_aggregates_seeds_and_lists_failed_and_missing_runs(tmp_path):
     assert "\\begin{tabular}" in tex and "2.000 $\\pm$ 2.484" in tex
 
 
+def test_a_cell_with_fewer_seeds_than_its_row_says_so(tmp_path):
+    """Seed 2 logs no finite L1-inv (a depth map without one pixel of positive depth): the row
+    counts 3 seeds (its translation cell), the L1-inv cell is the mean of 2 and is marked."""
+    uri = f"sqlite:///{tmp_path}/mlflow.db"
+    tracker = Tracker(uri, "study", str(tmp_path / "artifacts"))
+    for seed, value in enumerate([1.0, 3.0, math.nan]):
+        run = tracker.start(f"a-{seed}", {f"{TAG}run_key": f"a{seed}", f"{TAG}row": "a",
+                                          f"{TAG}seed": str(seed), **version_tags()})
+        tracker.log_metrics(run, {"test/setA/it0/l1_inv": value, "test/setA/it0/tran_deg": 10.0 + seed})
+        tracker.finish(run, "FINISHED")
+    _spec(tmp_path)
+    paths = report.report("study", uri, tmp_path / "reports", tmp_path)
+    md = paths["md"].read_text()
+    assert "| row a | 3 | 2.000 ± 12.706 (n = 2) | 11.000 ± 2.484 |" in md
+    assert "($n=2$)" in paths["tex"].read_text()
+
+
 def test_report_names_counted_runs_whose_artifacts_are_gone(tmp_path, capsys):
     """Runs logged metrics but no artifacts (as when a store's artifact folder is lost): the tables
     count them, the artifact-based figures cannot, and the report says so instead of drawing less."""
