@@ -247,6 +247,13 @@ def _describe(spec: Mapping[str, Any], runs: Sequence[Run], used: Mapping[str, A
             "runs": str(len({r.run_id for r in chosen})), "commands": commands}
 
 
+def _cell_text(cell, row_n: int, pm: str, fewer: str) -> str:
+    """Mean, ``pm`` and the CI half-width (with 2+ seeds), and ``fewer`` (a format with the cell's
+    n) when fewer seeds than the row's logged a finite value here (say, no pixel of positive depth)."""
+    text = _fmt(cell.mean) + (f"{pm}{_fmt(cell.ci95)}" if cell.n > 1 else "")
+    return text + (fewer.format(cell.n) if 0 < cell.n < row_n else "")
+
+
 def write_markdown(spec, result, info, failed, paper_rows) -> str:
     out = io.StringIO()
     w = out.write
@@ -275,13 +282,7 @@ def write_markdown(spec, result, info, failed, paper_rows) -> str:
             for row in table["rows"]:
                 entry = rows[row["label"]]
                 n = max((c.n for c in entry.values()), default=0)
-                cells = []
-                for c in table["columns"]:
-                    cell = entry[c]
-                    text = _fmt(cell.mean) + (f" ± {_fmt(cell.ci95)}" if cell.n > 1 else "")
-                    if 0 < cell.n < n:  # some seeds have no finite value here (say, no valid pixel)
-                        text += f" (n = {cell.n})"
-                    cells.append(text)
+                cells = [_cell_text(entry[c], n, " ± ", " (n = {})") for c in table["columns"]]
                 w(f"| {row['label']} | {n} | " + " | ".join(cells) + " |\n")
                 paper = paper_cells(paper_rows, row.get("paper"), paper_dataset, table["columns"])
                 if paper:
@@ -354,8 +355,7 @@ def write_tex(spec, result, info, paper_rows) -> str:
             for row in table["rows"]:
                 entry = rows[row["label"]]
                 n = max((entry[c].n for c in cols), default=0)
-                cells = [_fmt(entry[c].mean) + (f" $\\pm$ {_fmt(entry[c].ci95)}" if entry[c].n > 1 else "")
-                         + (f" ($n={entry[c].n}$)" if 0 < entry[c].n < n else "") for c in cols]
+                cells = [_cell_text(entry[c], n, " $\\pm$ ", " ($n={}$)") for c in cols]
                 w(" & ".join([esc(row["label"]), *cells]) + " \\\\\n")
                 paper = paper_cells(paper_rows, row.get("paper"), paper_dataset, cols)
                 if paper:

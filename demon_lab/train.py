@@ -115,12 +115,12 @@ def train_stage(cfg: DictConfig, chain: DeMoN, stage: StageDir, logger: L.pytorc
                   weight_decay=float(cfg.schedule.weight_decay), warmup_steps=int(spec.get("warmup_steps", 0)))
     if kind in ("flow", "depth_motion"):
         kwargs.update(net=spec.net, oracle=spec.get("oracle"))
-        if kind == "flow":
-            kwargs.update(sig_start=float(spec.get("sig_start", 0.0)))
     elif kind == "iterative":
-        kwargs.update(queue_size=int(spec.queue_size), sig_start=float(spec.get("sig_start", 0.0)))
+        kwargs.update(queue_size=int(spec.queue_size))
     else:
         kwargs.update(iterations=int(spec.iterations))
+    if kind in ("flow", "iterative"):
+        kwargs.update(sig_start=float(spec.get("sig_start", 0.0)))
     module = STAGE_KINDS[kind](chain, weights=OmegaConf.to_container(cfg.loss, resolve=True), **kwargs)
     batch = int(spec.get("batch_size") or cfg.data.batch_size)
     resume = stage.last_checkpoint if stage.last_checkpoint.is_file() else None

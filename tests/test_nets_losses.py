@@ -288,7 +288,7 @@ def test_iterative_stage_flow_sig_terms_start_at_sig_start(sig_start):
 
 
 def test_flow_sig_gradient_swamps_the_flow_term_near_zero_flow():
-    """Why the cpu scale delays the flow stages' sig terms (conf/scale/cpu.yaml): with the released
+    """Why the cpu scale leaves out the flow stages' sig terms (conf/scale/cpu.yaml): with the released
     code's weights, the gradient of flow2_sig on the predicted flow is hundreds of times the flow2
     term's when the prediction is near zero (where an untrained flow net sits), and an order of
     magnitude less so near the ground truth. ``pytest -s -k sig_gradient`` prints the ratios."""
