@@ -63,15 +63,18 @@ def scheduled_stages(cfg: DictConfig) -> list[str]:
 def describe_stage(cfg: DictConfig, name: str, upstream: dict[str, str]) -> dict[str, Any]:
     """Everything that determines a stage's result (what its cache key hashes)."""
     plain = lambda node: OmegaConf.to_container(node, resolve=True)  # noqa: E731
+    spec = cfg.schedule.stages[name]
     return {
         "stage": name,
-        "stage_config": plain(cfg.schedule.stages[name]),
+        "stage_config": plain(spec),
         "optimisation": {k: cfg.schedule[k] for k in ("lr_schedule", "weight_decay", "grad_clip")},
-        "batch_size": cfg.schedule.stages[name].get("batch_size") or cfg.data.batch_size,
+        "batch_size": spec.get("batch_size") or cfg.data.batch_size,
         "model": {**plain(cfg.model), "size": list(cfg.data.size)},
         # Only the weights this stage's loss reads: ablations that change another stage's terms
-        # (no_normals for the flow stages, say) share this stage.
-        "loss": {k: float(cfg.loss[k]) for k in losses.STAGE_WEIGHTS[cfg.schedule.stages[name].kind]},
+        # (no_normals for the flow stages, say, or no_sig for a flow stage without sig terms)
+        # share this stage.
+        "loss": {k: float(cfg.loss[k]) for k in losses.stage_weight_keys(
+            spec.kind, float(spec.get("sig_start", 0.0)))},
         "train_data": plain(cfg.data.train),
         "seed": cfg.seed,
         "upstream": dict(upstream),

@@ -218,18 +218,25 @@ def test_a_stage_key_holds_only_the_loss_weights_that_stage_reads():
     """The loss-weight study's presets share every stage whose loss they leave unchanged:
     no_normals and depth_sig_1000 change depth-motion weights only, so they share supplementary's
     flow1 and train their own dm1; no_confidence changes the flow weights, so its flow1 (and,
-    through the upstream key, its dm1) is its own."""
+    through the upstream key, its dm1) is its own. no_sig changes the flow sig weights, which the
+    cpu scale's flow1 never reads (sig_start 1), so there it shares supplementary's flow1 too; at
+    the paper scale (sig terms from step 0) it does not."""
     from demon_lab.train import stage_dirs
 
     keys = {}
     with initialize_config_dir(CONF, version_base="1.3"):
-        for loss in ("supplementary", "no_normals", "depth_sig_1000", "no_confidence"):
+        for loss in ("supplementary", "no_normals", "depth_sig_1000", "no_confidence", "no_sig"):
             cfg = compose("config", ["scale=cpu", "+experiment=loss_weights", f"loss={loss}"])
             keys[loss] = [d.key for d in stage_dirs(cfg)]
     flow1 = {loss: k[0] for loss, k in keys.items()}
     dm1 = {loss: k[1] for loss, k in keys.items()}
     assert flow1["no_normals"] == flow1["depth_sig_1000"] == flow1["supplementary"] != flow1["no_confidence"]
-    assert len(set(dm1.values())) == 4
+    assert flow1["no_sig"] == flow1["supplementary"]
+    assert len(set(dm1.values())) == 5
+    with initialize_config_dir(CONF, version_base="1.3"):
+        paper = {loss: stage_dirs(compose("config", ["scale=paper", "+experiment=loss_weights", f"loss={loss}"]))[0].key
+                 for loss in ("supplementary", "no_sig")}
+    assert paper["no_sig"] != paper["supplementary"]
 
 
 def test_times_resolver_takes_integers_only():
