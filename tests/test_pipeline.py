@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import os
 import signal
 import subprocess
@@ -127,6 +128,29 @@ def test_second_identical_invocation_is_skipped_and_stages_are_cached(smoke_run)
     assert all(f == {"cached": 1.0} for f in other["figures"].values())
     forced = run(compose_config(smoke_overrides(tmp, "force=true")))
     assert forced["status"] == "finished" and forced["run_id"] != result["run_id"]
+
+
+def test_diagnosis_reads_the_cached_chain_and_needs_it(smoke_run, tmp_path, capsys):
+    """``python -m demon_lab.diagnose`` on the smoke run's stage cache: every test set, passes
+    0..iterations; on an empty cache it names the missing stages and exits 2 (trains nothing)."""
+    import json
+
+    from demon_lab.diagnose import main
+
+    tmp, _ = smoke_run
+    out = tmp_path / "diag.json"
+    assert main([*smoke_overrides(tmp), "iterations=2", "--out", str(out)]) == 0
+    passes = json.loads(out.read_text())["passes"]
+    assert set(passes) >= {"synthetic_scenes11", "synthetic_sun3d", "synthetic_mvs", "middlebury"}
+    for rows in passes.values():
+        assert len(rows) == 3 and rows[0]["pairs"] >= 1
+        assert all(math.isfinite(r["epe"]) and 0 <= r["nonpositive_depth"] <= 1 for r in rows)
+        assert math.isnan(rows[0]["prior"]) and math.isfinite(rows[1]["prior"])
+    assert "inv<=0" in capsys.readouterr().out
+    empty = [*smoke_overrides(tmp_path), "iterations=2"]
+    assert main(empty) == 2
+    assert "stages not in the cache: flow1, dm1, flow2, dm2, iterative" in capsys.readouterr().err
+    assert not (tmp_path / "cache").exists() or not any((tmp_path / "cache").rglob("weights.pt"))
 
 
 def test_a_job_that_raises_leaves_its_run_failed(tmp_path):
