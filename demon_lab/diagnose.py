@@ -13,7 +13,8 @@ the pairs of:
 - ``follow``: the mean distance between the pass's flow and that prior (0: the net copies it);
 - ``|t|``, ``rot``: the predicted translation's length (ground truth: 1) and rotation angle in
   degrees (``gt rot``: the ground truth's);
-- ``inv<=0``: the share of pixels whose predicted inverse depth is not positive (no depth there).
+- ``inv<=0``: the share of pixels whose predicted inverse depth is not positive (no depth there);
+  row ``refined``: the same for the refinement net's full-resolution depth (when it is trained).
 
 The chain's stages must be in the stage cache (``python -m demon_lab`` with the same overrides
 trains them); nothing is trained or tracked here. ``--out FILE`` also writes the numbers as JSON.
@@ -47,8 +48,9 @@ def _pixel_mean(x: torch.Tensor) -> torch.Tensor:
     return torch.where(count > 0, total / count.clamp_min(1), torch.full_like(total, math.nan))
 
 
-def diagnose_batch(chain, batch: dict, iterations: int) -> list[list[dict[str, float]]]:
-    """Per pass (0..iterations), per sample of ``batch``: the numbers the module docstring names."""
+def diagnose_batch(chain, batch: dict, iterations: int, refine: bool = False) -> list[list[dict[str, float]]]:
+    """Per pass (0..iterations), per sample of ``batch``: the numbers the module docstring names;
+    with ``refine``, one more entry for the refined depth (only ``nonpositive_depth`` set)."""
     from demon_lab.nets.chain import downsample_image, flow_net_inputs
 
     gt = losses.ground_truth(batch)
@@ -79,6 +81,11 @@ def diagnose_batch(chain, batch: dict, iterations: int) -> list[list[dict[str, f
             }
             passes.append([{key: float(v[i]) for key, v in row.items()} for i in range(pair.shape[0])])
             prev = p
+        if refine:
+            refined = chain.refine(batch["image1"], prev.inv_depth)[:, :1]
+            share = (~(refined > 0)).flatten(1).float().mean(1)
+            passes.append([{**{key: math.nan for key, _ in COLUMNS}, "nonpositive_depth": float(share[i])}
+                           for i in range(pair.shape[0])])
     return passes
 
 
@@ -97,7 +104,8 @@ def summarize(per_sample: Sequence[Sequence[dict[str, float]]]) -> list[dict[str
 
 def format_table(results: dict[str, list[dict[str, float]]]) -> str:
     header = ["test set", "pass", *[label for _, label in COLUMNS]]
-    rows = [[name, str(k), *["-" if not math.isfinite(r[key]) else f"{r[key]:.3f}" for key, _ in COLUMNS]]
+    cell = lambda v: "-" if not math.isfinite(v) else f"{v:.3f}"  # noqa: E731
+    rows = [[name, str(r.get("pass", k)), *[cell(r[key]) for key, _ in COLUMNS]]
             for name, passes in results.items() for k, r in enumerate(passes)]
     widths = [max(len(r[i]) for r in [header, *rows]) for i in range(len(header))]
     fmt = lambda r: "  ".join(c.rjust(w) if i > 1 else c.ljust(w) for i, (c, w) in enumerate(zip(r, widths)))  # noqa: E731
@@ -120,9 +128,11 @@ def run(overrides: Sequence[str], out: str | None = None) -> dict[str, list[dict
 
         set_threads(int(cfg.threads))
     chain = build_chain(cfg)
-    stages = [s for s in stage_dirs(cfg) if s.name != "refine"]
-    if {s.name for s in stages} < {"flow1", "dm1", "flow2", "dm2", "iterative"}:
+    stages = stage_dirs(cfg)
+    if not {s.name for s in stages} >= {"flow1", "dm1", "flow2", "dm2", "iterative"}:
         raise ConfigError("schedule.until: the diagnosis needs the chain up to the iterative stage")
+    refine = any(s.name == "refine" and s.done() for s in stages)
+    stages = [s for s in stages if s.name != "refine" or refine]
     missing = [s.name for s in stages if not s.done()]
     if missing:
         raise ConfigError(f"stages not in the cache: {', '.join(missing)} (train them with "
@@ -134,11 +144,13 @@ def run(overrides: Sequence[str], out: str | None = None) -> dict[str, list[dict
     for spec in cfg.data.test:
         dataset = instantiate(spec)
         loader = torch.utils.data.DataLoader(dataset, batch_size=int(cfg.eval.batch_size))
-        per_pass: list[list[dict[str, float]]] = [[] for _ in range(int(cfg.iterations) + 1)]
+        per_pass: list[list[dict[str, float]]] = [[] for _ in range(int(cfg.iterations) + 1 + refine)]
         for batch in loader:
-            for k, samples in enumerate(diagnose_batch(chain, batch, int(cfg.iterations))):
+            for k, samples in enumerate(diagnose_batch(chain, batch, int(cfg.iterations), refine)):
                 per_pass[k] += samples
         results[dataset.name] = summarize(per_pass)
+        for k, row in enumerate(results[dataset.name]):
+            row["pass"] = "refined" if k > int(cfg.iterations) else k
     print(f"[demon_lab] diagnosis (scale {cfg.scale.name}, seed {cfg.seed}; flow at level 2, "
           f"normalised units; rot in degrees):")
     print(format_table(results))

@@ -78,6 +78,14 @@ def test_prior_is_what_the_iterative_flow_net_receives(batch):
         assert p1[i]["prior"] == pytest.approx(float(kept[i]), rel=1e-5)
 
 
+def test_refined_row_counts_non_positive_depth(batch):
+    chain = ScriptedChain(batch)
+    chain.refine = lambda image1, inv: torch.where(torch.arange(image1.shape[-1]) < 24, -1.0, 1.0).expand(
+        image1.shape[0], 1, *image1.shape[-2:])
+    rows = diagnose_batch(chain, batch, iterations=1, refine=True)
+    assert len(rows) == 3 and all(r["nonpositive_depth"] == 0.25 and math.isnan(r["epe"]) for r in rows[2])
+
+
 def test_summary_and_table(batch):
     results = {"scripted": summarize(diagnose_batch(ScriptedChain(batch), batch, iterations=1))}
     assert results["scripted"][0]["pairs"] == 3 and math.isnan(results["scripted"][0]["prior"])

@@ -142,9 +142,10 @@ def test_diagnosis_reads_the_cached_chain_and_needs_it(smoke_run, tmp_path, caps
     assert main([*smoke_overrides(tmp), "iterations=2", "--out", str(out)]) == 0
     passes = json.loads(out.read_text())["passes"]
     assert set(passes) >= {"synthetic_scenes11", "synthetic_sun3d", "synthetic_mvs", "middlebury"}
-    for rows in passes.values():
-        assert len(rows) == 3 and rows[0]["pairs"] >= 1
-        assert all(math.isfinite(r["epe"]) and 0 <= r["nonpositive_depth"] <= 1 for r in rows)
+    for rows in passes.values():  # passes 0, 1, 2 and the refined depth
+        assert [r["pass"] for r in rows] == [0, 1, 2, "refined"] and rows[0]["pairs"] >= 1
+        assert all(math.isfinite(r["epe"]) for r in rows[:3]) and math.isnan(rows[3]["epe"])
+        assert all(0 <= r["nonpositive_depth"] <= 1 for r in rows)
         assert math.isnan(rows[0]["prior"]) and math.isfinite(rows[1]["prior"])
     assert "inv<=0" in capsys.readouterr().out
     empty = [*smoke_overrides(tmp_path), "iterations=2"]
