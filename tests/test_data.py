@@ -171,6 +171,46 @@ def test_augment_draws_are_deterministic(rendered):
     assert torch.equal(a["image1"], b["image1"]) and torch.equal(a["motion"], b["motion"])
 
 
+def test_augment_equals_its_flips_applied_one_by_one(rendered):
+    """augment computes the normals once, after the last flip: the result is the same, bit for
+    bit, as rotate_180 and mirror applied in turn (each recomputing them), for every draw."""
+    sample = rendered[0]
+    for seed in range(40):
+        rng = np.random.default_rng([1, seed])
+        rotate, flip = rng.random() < 0.5, rng.random() < 0.5
+        expected = sample
+        if rotate:
+            expected = smp.rotate_180(expected)
+        if flip:
+            expected = smp.mirror(expected)
+        got = smp.augment(sample, np.random.default_rng([1, seed]))
+        assert got.keys() == expected.keys()
+        for key, value in expected.items():
+            if isinstance(value, torch.Tensor):
+                assert torch.equal(got[key].nan_to_num(-7), value.nan_to_num(-7)), (seed, key)
+
+
+def test_synthetic_samples_are_kept_in_memory_unchanged(tmp_path):
+    import pickle
+
+    from demon_lab.data.datasets import SyntheticDataset
+
+    ds = SyntheticDataset("synthetic_sun3d", split="test", length=3, size=(32, 32), supersample=1, cache_dir=tmp_path)
+    first = ds.load(1)
+    (ds.cache / f"{ds.seed_of(1)}.pt").unlink()  # the second read cannot come from the disk
+    first.pop("image1")  # a caller's change to its dict does not reach the memory copy
+    again = ds.load(1)
+    assert "image1" in again and torch.equal(again["inv_depth"].nan_to_num(), first["inv_depth"].nan_to_num())
+    assert not (ds.cache / f"{ds.seed_of(1)}.pt").exists()
+    again["image1"] = again["image1"] * 0  # nor does replacing an entry
+    assert ds.load(1)["image1"].abs().sum() > 0
+    assert pickle.loads(pickle.dumps(ds))._memory == {}  # not shipped to worker processes
+    small = SyntheticDataset("synthetic_sun3d", split="test", length=3, size=(32, 32), supersample=1,
+                             cache_dir=tmp_path, memory_mb=0)
+    small.load(0)
+    assert small._memory == {} and small._memory_bytes == 0
+
+
 # ----------------------------------------------------------------------------- synthetic
 
 

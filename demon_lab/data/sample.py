@@ -275,28 +275,28 @@ def _affine_maps(k_in: np.ndarray, k_out: np.ndarray, shape_in: tuple[int, int],
 # ----------------------------------------------------------------------------- augmentation
 
 
-def rotate_180(sample: Sample) -> Sample:
+def rotate_180(sample: Sample, normals: bool = True) -> Sample:
     """Both images turned by 180 degrees: both cameras rotate by pi about their z axes.
 
     X' = Rz X with Rz = diag(-1, -1, 1): R' = Rz R Rz, i.e. r' = (-rx, -ry, rz); t' = (-tx, -ty, tz);
     cx -> 1 - cx, cy -> 1 - cy; maps flipped on both axes; flow x, y negated.
     """
     sign = torch.tensor([-1.0, -1.0, 1.0])
-    return _flip_sample(sample, dims=(-2, -1), sign=sign, principal=(2, 3))
+    return _flip_sample(sample, dims=(-2, -1), sign=sign, principal=(2, 3), normals=normals)
 
 
-def mirror(sample: Sample) -> Sample:
+def mirror(sample: Sample, normals: bool = True) -> Sample:
     """Horizontal mirror: X' = M X with M = diag(-1, 1, 1) in both cameras.
 
     R' = M R M, i.e. r' = (rx, -ry, -rz) (a reflection flips the rotation sense); t' = (-tx, ty, tz);
     cx -> 1 - cx; maps flipped left-right; flow x negated.
     """
     sign = torch.tensor([-1.0, 1.0, 1.0])
-    return _flip_sample(sample, dims=(-1,), sign=sign, principal=(2,))
+    return _flip_sample(sample, dims=(-1,), sign=sign, principal=(2,), normals=normals)
 
 
 def _flip_sample(sample: Sample, dims: tuple[int, ...], sign: torch.Tensor,
-                 principal: tuple[int, ...]) -> Sample:
+                 principal: tuple[int, ...], normals: bool = True) -> Sample:
     out = dict(sample)
     for key in MAP_KEYS:
         out[key] = sample[key].flip(dims)
@@ -311,14 +311,17 @@ def _flip_sample(sample: Sample, dims: tuple[int, ...], sign: torch.Tensor,
         out[key] = k
     # Like DeMoN, GT normals come from the augmented depth: its pixel stencil (right/down and
     # left/up neighbours) is not mirror-symmetric at creases, so flipping the old map would differ.
-    out["normals"] = geo.normals_from_depth(out["inv_depth"][None], out["intrinsics"][None])[0]
+    # normals=False leaves them to the caller (a further flip that recomputes them anyway).
+    if normals:
+        out["normals"] = geo.normals_from_depth(out["inv_depth"][None], out["intrinsics"][None])[0]
     return out
 
 
 def augment(sample: Sample, rng: np.random.Generator) -> Sample:
     """DeMoN's augmentation: 180-degree rotation and horizontal mirror, each with p = 0.5."""
-    if rng.random() < 0.5:
-        sample = rotate_180(sample)
-    if rng.random() < 0.5:
+    rotate, flip = rng.random() < 0.5, rng.random() < 0.5
+    if rotate:
+        sample = rotate_180(sample, normals=not flip)  # the mirror recomputes them
+    if flip:
         sample = mirror(sample)
     return sample
