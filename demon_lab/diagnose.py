@@ -161,11 +161,15 @@ def run(overrides: Sequence[str], out: str | None = None) -> dict[str, list[dict
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    from hydra.errors import HydraException
     from omegaconf.errors import OmegaConfBaseException
 
     from demon_lab.config import ConfigError
 
     args = list(sys.argv[1:] if argv is None else argv)
+    if any(a in ("-h", "--help") for a in args):
+        print(__doc__)
+        return 0
     out = None
     if "--out" in args:
         i = args.index("--out")
@@ -176,7 +180,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         del args[i:i + 2]
     try:
         run(args, out)
-    except (ConfigError, OmegaConfBaseException) as e:
+    except (ConfigError, HydraException, OmegaConfBaseException) as e:
         print(f"error: {str(e).splitlines()[0]}", file=sys.stderr)
         return 2
     return 0

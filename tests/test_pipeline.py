@@ -152,6 +152,8 @@ def test_diagnosis_reads_the_cached_chain_and_needs_it(smoke_run, tmp_path, caps
     assert main(empty) == 2
     assert "stages not in the cache: flow1, dm1, flow2, dm2, iterative" in capsys.readouterr().err
     assert not (tmp_path / "cache").exists() or not any((tmp_path / "cache").rglob("weights.pt"))
+    assert main([*smoke_overrides(tmp), "bogus=1"]) == 2
+    assert "bogus" in capsys.readouterr().err
 
 
 def test_a_job_that_raises_leaves_its_run_failed(tmp_path):
