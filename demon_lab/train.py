@@ -7,6 +7,7 @@ the job's MLflow run, with its loss curves.
 from __future__ import annotations
 
 import contextlib
+import gc
 import time
 from collections.abc import Callable
 from typing import Any
@@ -156,8 +157,13 @@ def train_stage(cfg: DictConfig, chain: DeMoN, stage: StageDir, logger: L.pytorc
     if global_rank(cfg) == 0:
         stage.save({net: getattr(chain, net).state_dict() for net in TRAINED_NETS[stage.name]})
     steps_done = int(spec.steps) - start_step
-    return {"seconds": seconds, "steps_per_second": steps_done / max(seconds, 1e-9), "resumed_from_step": start_step,
-            **{f"final/{k}": v for k, v in module.last_terms.items()}}
+    figures = {"seconds": seconds, "steps_per_second": steps_done / max(seconds, 1e-9), "resumed_from_step": start_step,
+               **{f"final/{k}": v for k, v in module.last_terms.items()}}
+    # The trainer and the module refer to each other: collect them (and the datasets' in-memory
+    # samples) now rather than let every stage of a job keep its own copy until the next GC pass.
+    del trainer, module, datamodule
+    gc.collect()
+    return figures
 
 
 def _checkpoint_step(path) -> int:
