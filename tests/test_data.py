@@ -190,7 +190,7 @@ def test_augment_equals_its_flips_applied_one_by_one(rendered):
                 assert torch.equal(got[key].nan_to_num(-7), value.nan_to_num(-7)), (seed, key)
 
 
-def test_synthetic_samples_are_kept_in_memory_unchanged(tmp_path):
+def test_synthetic_samples_are_kept_in_memory_unchanged(tmp_path, monkeypatch):
     import pickle
 
     from demon_lab.data.datasets import SyntheticDataset
@@ -209,6 +209,10 @@ def test_synthetic_samples_are_kept_in_memory_unchanged(tmp_path):
                              cache_dir=tmp_path, memory_mb=0)
     small.load(0)
     assert small._memory == {} and small._memory_bytes == 0
+    monkeypatch.setenv("DEMON_LAB_MEMORY_MB", "0")
+    off = SyntheticDataset("synthetic_sun3d", split="test", length=3, size=(32, 32), supersample=1, cache_dir=tmp_path)
+    off.load(0)
+    assert off.memory_budget == 0 and off._memory == {}
 
 
 # ----------------------------------------------------------------------------- synthetic
