@@ -53,6 +53,11 @@ def format_table(summary: dict[str, dict[str, float]], iterations: int, refined:
                 v = values.get(f"{prefix}{key}", math.nan)
                 cells.append("-" if v != v else f"{v:.3f}")
             rows.append([name, str(it), *cells])
+    return text_table(header, rows)
+
+
+def text_table(header: list[str], rows: list[list[str]]) -> str:
+    """A terminal table: the first two columns (test set, pass) left-aligned, numbers right."""
     widths = [max(len(r[i]) for r in [header, *rows]) for i in range(len(header))]
     fmt = lambda r: "  ".join(c.rjust(w) if i > 1 else c.ljust(w) for i, (c, w) in enumerate(zip(r, widths)))  # noqa: E731
     return "\n".join([fmt(header), "  ".join("-" * w for w in widths), *map(fmt, rows)])

@@ -103,13 +103,12 @@ def summarize(per_sample: Sequence[Sequence[dict[str, float]]]) -> list[dict[str
 
 
 def format_table(results: dict[str, list[dict[str, float]]]) -> str:
+    from demon_lab.app import text_table
+
     header = ["test set", "pass", *[label for _, label in COLUMNS]]
     cell = lambda v: "-" if not math.isfinite(v) else f"{v:.3f}"  # noqa: E731
-    rows = [[name, str(r.get("pass", k)), *[cell(r[key]) for key, _ in COLUMNS]]
-            for name, passes in results.items() for k, r in enumerate(passes)]
-    widths = [max(len(r[i]) for r in [header, *rows]) for i in range(len(header))]
-    fmt = lambda r: "  ".join(c.rjust(w) if i > 1 else c.ljust(w) for i, (c, w) in enumerate(zip(r, widths)))  # noqa: E731
-    return "\n".join([fmt(header), "  ".join("-" * w for w in widths), *map(fmt, rows)])
+    return text_table(header, [[name, str(r.get("pass", k)), *[cell(r[key]) for key, _ in COLUMNS]]
+                               for name, passes in results.items() for k, r in enumerate(passes)])
 
 
 def run(overrides: Sequence[str], out: str | None = None) -> dict[str, list[dict[str, float]]]:
