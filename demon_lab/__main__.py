@@ -9,9 +9,10 @@ from __future__ import annotations
 
 import itertools
 import sys
-from pathlib import Path
 
-CONF = str(Path(__file__).resolve().parent.parent / "conf")
+from demon_lab import resources
+
+CONF = str(resources.CONF)
 MAX_CHECKED_JOBS = 256
 
 

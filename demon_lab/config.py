@@ -7,12 +7,11 @@ arbitrary code.
 
 from __future__ import annotations
 
-from pathlib import Path
 from typing import Any
 
+from demon_lab.resources import DATA
+
 ALLOWED_TARGETS = ("demon_lab.", "torch.", "lightning.")
-SHARED = Path(__file__).resolve().parents[2] / "shared"
-"""The ``shared/`` folder beside the project checkout, where the real SUN3D pair ships."""
 
 
 def _times(value: Any, factor: Any) -> int:
@@ -23,12 +22,13 @@ def _times(value: Any, factor: Any) -> int:
 
 
 def register_resolvers() -> None:
-    """``${shared:data/real/...}`` -> an absolute path inside :data:`SHARED`, whatever the
-    working directory; ``${times:N,K}`` -> N x K for integers (nothing else is evaluated)."""
+    """``${bundled:NAME}`` -> the absolute path of a real sample that ships inside the package
+    (:data:`demon_lab.resources.DATA`), whatever the working directory; ``${times:N,K}`` -> N x K
+    for integers (nothing else is evaluated)."""
     from omegaconf import OmegaConf
 
-    if not OmegaConf.has_resolver("shared"):
-        OmegaConf.register_new_resolver("shared", lambda path="": str(SHARED / path))
+    if not OmegaConf.has_resolver("bundled"):
+        OmegaConf.register_new_resolver("bundled", lambda name="": str(DATA / name))
     if not OmegaConf.has_resolver("times"):
         OmegaConf.register_new_resolver("times", _times)
 

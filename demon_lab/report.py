@@ -32,10 +32,9 @@ from typing import Any
 
 import yaml
 
+from demon_lab.resources import STUDIES as ABLATIONS
 from demon_lab.tracking import TAG, metric_name, version_tags
 
-ROOT = Path(__file__).resolve().parent.parent
-ABLATIONS = ROOT / "ablations"
 PAPER_COLUMNS = {"l1_inv": "L1-inv", "sc_inv": "sc-inv", "l1_rel": "L1-rel", "delta_1.25": "delta<1.25",
                  "delta_1.25_2": "delta<1.25^2", "delta_1.25_3": "delta<1.25^3", "rot_deg": "rot",
                  "tran_deg": "tran", "epe": "EPE"}

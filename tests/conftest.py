@@ -1,17 +1,17 @@
-"""Shared fixtures: the real SUN3D pair that ships beside the project, and small random scenes."""
+"""Shared fixtures: the real SUN3D pair that ships with demon_lab, and small random scenes."""
 
 from __future__ import annotations
 
 import math
 import socket
-from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 
-SHARED = Path(__file__).resolve().parents[2] / "shared"
-SUN3D_PAIR = SHARED / "data" / "real" / "sun3d_train_0.1m_to_0.2m_00000"
+from demon_lab.resources import DATA
+
+SUN3D_PAIR = DATA / "sun3d_train_0.1m_to_0.2m_00000"
 
 DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
 

@@ -14,6 +14,7 @@ import torch
 from conftest import SUN3D_PAIR
 
 from demon_lab import geometry as geo
+from demon_lab import resources
 from demon_lab.data import sample as smp
 from demon_lab.data import synthetic
 from demon_lab.data.datasets import (
@@ -573,11 +574,10 @@ def test_datamodule_batches_a_mix(tmp_path):
 
 
 def test_every_data_config_composes(tmp_path):
-    from pathlib import Path
 
     from hydra import compose, initialize_config_dir
 
-    conf = Path(__file__).resolve().parents[1] / "conf"
+    conf = resources.CONF
     names = sorted(p.stem for p in (conf / "data").glob("*.yaml"))
     assert {"synthetic_scenes11", "synthetic_sun3d", "synthetic_mvs", "demon_h5", "pair_folder",
             "middlebury", "tum", "default"} <= set(names)

@@ -8,7 +8,7 @@ import pytest
 import torch
 import yaml
 
-from demon_lab import losses
+from demon_lab import losses, resources
 from demon_lab.nets import DeMoN, DepthMotionNet, FlowNet, RefineNet
 
 
@@ -157,9 +157,8 @@ def test_ramps():
 
 
 def _preset(name: str) -> dict:
-    from pathlib import Path
 
-    conf = Path(__file__).resolve().parents[1] / "conf" / "loss"
+    conf = resources.CONF / "loss"
     data = yaml.safe_load((conf / f"{name}.yaml").read_text())
     base = {}
     for parent in data.pop("defaults", []):

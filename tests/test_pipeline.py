@@ -14,6 +14,7 @@ import pytest
 import torch
 from hydra import compose, initialize_config_dir
 
+from demon_lab import resources
 from demon_lab.__main__ import CONF, check
 from demon_lab.tracking import run_key
 
@@ -207,7 +208,7 @@ def test_documented_configurations_compose_and_validate(overrides):
     assert check(overrides) is None
 
 
-EXPERIMENTS = sorted(p.stem for p in (ROOT / "conf" / "experiment").glob("*.yaml"))
+EXPERIMENTS = sorted(p.stem for p in (resources.CONF / "experiment").glob("*.yaml"))
 
 
 @pytest.mark.parametrize("experiment", EXPERIMENTS)

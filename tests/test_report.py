@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from demon_lab import report, tracking
+from demon_lab import report, resources, tracking
 from demon_lab.tracking import TAG, Tracker
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -42,7 +42,7 @@ def test_every_shipped_spec_loads_and_names_known_paper_rows():
         for overrides in spec["runs"]:  # every job of the spec's commands composes and validates
             assert check(["-m", *overrides]) is None, (path.stem, overrides)
         for table in spec["tables"]:
-            assert (ROOT / "conf" / "experiment" / f"{table['experiment']}.yaml").is_file(), path.stem
+            assert (resources.CONF / "experiment" / f"{table['experiment']}.yaml").is_file(), path.stem
             for row in table["rows"]:
                 ref = row.get("paper")
                 if ref:
@@ -164,10 +164,10 @@ def test_report_from_real_smoke_runs(tmp_path):
     job = subprocess.run([sys.executable, "-m", "demon_lab", "-m", "+experiment=gt_depth_motion_oracle", *overrides],
                          cwd=tmp_path, capture_output=True, text=True, timeout=600)
     assert job.returncode == 0, job.stderr[-2000:]
-    result = subprocess.run([sys.executable, "-m", "demon_lab.report", "table2_gt_oracles"], cwd=tmp_path,
+    result = subprocess.run([sys.executable, "-m", "demon_lab.report", "gt_flow_oracle"], cwd=tmp_path,
                             capture_output=True, text=True, timeout=300)
     assert result.returncode == 0, result.stderr[-2000:]
-    with open(tmp_path / "reports" / "table2_gt_oracles.csv", newline="") as f:
+    with open(tmp_path / "reports" / "gt_flow_oracle.csv", newline="") as f:
         rows = [r for r in csv.DictReader(f) if r["table"] == "flow" and r["dataset"] == "synthetic_sun3d"]
     epe = {r["row"]: r for r in rows}
     assert int(epe["image pair only"]["n"]) == 1 and int(epe["GT depth+motion"]["n"]) == 1
@@ -180,6 +180,6 @@ def test_report_from_real_smoke_runs(tmp_path):
     assert float(epe["GT depth+motion"]["mean"]) == logged["test/synthetic_sun3d/it1/epe"]
     assert float(epe["image pair only"]["mean"]) == logged["test/synthetic_sun3d/it0/epe"]
     assert float(epe["GT depth+motion"]["paper"]) == 0.005
-    md = (tmp_path / "reports" / "table2_gt_oracles.md").read_text()
+    md = (tmp_path / "reports" / "gt_flow_oracle.md").read_text()
     assert "scale: smoke" in md and "missing: flow / image pair only: no FINISHED run for seed(s) 1, 2" in md
     assert "missing: depth_motion / image pair only: no FINISHED run for seed(s) 0, 1, 2" in md
