@@ -1,7 +1,8 @@
 """Two-view geometry: the layers that tie optical flow, depth and camera motion together.
 
 Pure, batched, differentiable tensor functions (float32 or float64, CPU or CUDA). The
-conventions are DeMoN's (spec sections 2-3) and hold for every function in this module:
+conventions are DeMoN's (docs/reference.md §2-§3: its lmbspecialops ops ``depth_to_flow``,
+``flow_to_depth``, ``warp2d``, ``depth_to_normals``) and hold for every function in this module:
 
 * ``intrinsics``: ``(B, 4)`` normalised pinhole parameters ``(fx/W, fy/H, cx/W, cy/H)``, so they
   are the same at every resolution of an image. DeMoN's fixed value is
@@ -457,7 +458,7 @@ def normals_from_depth(inv_depth: Tensor, intrinsics: Tensor) -> Tensor:
 
 
 def _cross(a: Tensor, b: Tensor) -> Tensor:
-    """Cross product along dim 1 of (B, 3, H, W) maps (explicit: linalg.cross is slow here)."""
+    """Cross product along dim 1 of (B, 3, H, W) maps (explicit: linalg.cross is slower on these maps)."""
     ax, ay, az = a.unbind(1)
     bx, by, bz = b.unbind(1)
     return torch.stack([ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx], dim=1)
@@ -475,7 +476,8 @@ def _unit(n: Tensor) -> Tensor:
 def scale_invariant_gradients(
     x: Tensor, spacings: Sequence[int] = (1, 2, 4, 8, 16), eps: float = 1e-3
 ) -> Tensor:
-    """DeMoN's scale-invariant gradients of every channel at several spacings (spec section 3).
+    """DeMoN's scale-invariant gradients of every channel at several spacings
+    (lmbspecialops' ``scale_invariant_gradient``; docs/reference.md §3).
 
     ``g_x^h(i, j) = (f(i, j+h) - f(i, j)) / (|f(i, j+h)| + |f(i, j)| + eps)`` and likewise
     ``g_y^h`` along rows; a term whose neighbour is outside the image is 0. NaN propagates.
@@ -535,7 +537,8 @@ def median_downsample(x: Tensor) -> Tensor:
 
 
 def inverse_depth_pyramid(inv_depth: Tensor, levels: int = 5) -> list[Tensor]:
-    """Ground-truth pyramid by recursive median downsampling (spec section 3).
+    """Ground-truth pyramid by recursive median downsampling (DeMoN's
+    ``recursive_median_downsample`` in `python/depthmotionnet/v2/helpers.py`; docs/reference.md §3-§4).
 
     Invalid pixels (0, negative, inf) are first turned into NaN so they do not enter the medians.
 

@@ -1,9 +1,11 @@
-"""DeMoN's training losses (spec section 4): pure functions returning ``(loss, terms)``.
+"""DeMoN's training losses (DeMoN's `python/depthmotionnet/v2/losses.py` and the weights of
+`training/v2/training.py`; docs/reference.md §4): pure functions returning ``(loss, terms)``.
 
-All point-wise losses use :func:`pointwise_l2` — the mean over batch and pixels of
-``sqrt(sum_channels d^2 + eps)`` with ``d = replace_nonfinite(pred - gt)`` (invalid ground truth
-contributes the constant ``sqrt(eps)`` and still counts in the mean, as in DeMoN). For one channel
-it is a smoothed L1, for flow the end-point error, for normals the Euclidean distance.
+All point-wise losses use :func:`pointwise_l2` (DeMoN's ``pointwise_l2_loss``) — the mean over
+batch and pixels of ``sqrt(sum_channels d^2 + eps)`` with ``d = replace_nonfinite(pred - gt)``
+(invalid ground truth contributes the constant ``sqrt(eps)`` and still counts in the mean, as in
+DeMoN). For one channel it is a smoothed L1, for flow the end-point error, for normals the
+Euclidean distance.
 
 Weights come from a preset (``conf/loss/``); ``ramp`` multiplies the scale-invariant gradient
 (sig) terms and ``level5`` the level-5 flow terms (the stage computes both from its step).
@@ -127,9 +129,9 @@ def refine_loss(refined: torch.Tensor, gt: Mapping[str, torch.Tensor], weights: 
 
 
 def ground_truth(batch: Mapping[str, torch.Tensor]) -> dict[str, torch.Tensor]:
-    """DeMoN's ``prepare_ground_truth_tensors`` from a batch of samples (spec section 4):
-    inverse depth at levels 0, 2, 5 (median pyramid), flow at levels 2 and 5 from depth and
-    motion, normals at levels 0 and 2."""
+    """DeMoN's ``prepare_ground_truth_tensors`` (`python/depthmotionnet/v2/losses.py`;
+    docs/reference.md §4) from a batch of samples: inverse depth at levels 0, 2, 5 (median
+    pyramid), flow at levels 2 and 5 from depth and motion, normals at levels 0 and 2."""
     inv0 = batch["inv_depth"]
     pyramid = geo.inverse_depth_pyramid(inv0, levels=5)
     k1, k2 = batch["intrinsics"], batch.get("intrinsics2", batch["intrinsics"])

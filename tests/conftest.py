@@ -24,7 +24,7 @@ def free_port() -> int:
 
 
 def relative_motion(pose1: np.ndarray, pose2: np.ndarray) -> np.ndarray:
-    """World-to-camera 3x4 poses -> (4, 4) transform X2 = R12 X1 + t12 (spec section 2)."""
+    """World-to-camera 3x4 poses -> (4, 4) transform X2 = R12 X1 + t12 (docs/reference.md §2)."""
     r1, t1, r2, t2 = pose1[:, :3], pose1[:, 3], pose2[:, :3], pose2[:, 3]
     r12 = r2 @ r1.T
     out = np.eye(4)

@@ -192,7 +192,7 @@ def test_depth_from_noisy_flow_is_the_least_squares_solution_of_demons_system():
             u1, v1 = (x + 0.5) / 7, (y + 0.5) / 6
             pts = [(u1, v1), (u1 + flow[0, 0, y, x].item(), v1 + flow[0, 1, y, x].item())]
             A, b = [], []
-            for P, (u, v) in zip(cams, pts):  # spec section 3, flow_to_depth
+            for P, (u, v) in zip(cams, pts):  # lmbspecialops' flow_to_depth (docs/reference.md §3)
                 A += [v * P[2, :3] - P[1, :3], P[0, :3] - u * P[2, :3]]
                 b += [P[1, 3] - v * P[2, 3], u * P[2, 3] - P[0, 3]]
             X = np.linalg.lstsq(np.array(A), np.array(b), rcond=None)[0]
@@ -224,7 +224,7 @@ def test_untriangulable_pixels_give_zero_and_clip_applies():
 def test_sun3d_view1_depth_and_motion_predict_view2_depth(sun3d_pair):
     d1, d2, K, T = sun3d_pair["depth1"], sun3d_pair["depth2"], sun3d_pair["K"], sun3d_pair["T12"]
     H, W = d1.shape
-    # The README's facts about this pair.
+    # The facts demon_lab/data/real/README.md states about this pair.
     angle = math.degrees(np.linalg.norm(cv2.Rodrigues(T[:3, :3])[0]))
     assert angle == pytest.approx(1.853, abs=1e-3)
     t = T[:3, 3]
@@ -368,7 +368,8 @@ def test_scale_invariant_gradients_are_scale_invariant_and_propagate_nan():
 
 
 def _median_kernel_reference(x: np.ndarray) -> np.ndarray:
-    """A literal transcription of DeMoN's median3x3_downsample kernel (spec section 3)."""
+    """A literal transcription of DeMoN's median3x3_downsample kernel (an lmbspecialops op;
+    docs/reference.md §3)."""
     H, W = x.shape
     out = np.empty(((H + 1) // 2, (W + 1) // 2))
     for i in range(out.shape[0]):

@@ -1,4 +1,4 @@
-"""Networks: parameter counts from the spec's layer tables, shapes, gradients; losses: values."""
+"""Networks: parameter counts from DeMoN's layer tables (docs/reference.md §1), shapes, gradients; losses: values."""
 
 from __future__ import annotations
 
@@ -20,7 +20,7 @@ def test_v1_parameter_counts_match_the_layer_tables():
     chain = DeMoN("v1", width=1.0, size=(192, 256))
     bootstrap = count(chain.flow1) + count(chain.dm1)
     iterative = count(chain.flow2) + count(chain.dm2)
-    # Sums of the spec's layer tables (section 1), layer by layer:
+    # Sums of the layer tables of docs/reference.md §1.1-§1.3 (DeMoN's v1 blocks), layer by layer:
     assert count(chain.flow1) == 8_279_866
     assert count(chain.dm1) == 14_367_331
     assert bootstrap == 22_647_197 and round(bootstrap / 1e6, 2) == 22.65

@@ -1,4 +1,4 @@
-"""The paper's classical baselines (supplementary section E; main paper Table 2).
+"""The paper's classical baselines (supplementary section F; main paper Table 2).
 
 Each method maps one sample (an image pair with intrinsics, as ``demon_lab.data`` produces it) to
 ``{"inv_depth": (h, w), "motion": (6,)}`` (inverse depth for a unit-length translation) and is

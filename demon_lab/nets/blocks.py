@@ -1,4 +1,7 @@
-"""Building blocks of DeMoN's encoder-decoders (spec section 1.0).
+"""Building blocks of DeMoN's encoder-decoders (docs/reference.md §1.0; in DeMoN's released code
+``convrelu2`` of `python/depthmotionnet/v2/helpers.py` and ``_refine`` of `python/depthmotionnet/v2/blocks.py`,
+v1: ``convrelu2_caffe_padding`` of `python/depthmotionnet/helpers.py` and ``_refine_caffe_padding`` of
+`python/depthmotionnet/blocks_original.py`).
 
 Two variants: ``v1`` is the original Caffe network (symmetric ``k // 2`` padding), ``v2`` the
 released training code's (TF 'same' padding: for a stride-2 layer on an even size the extra pad
@@ -97,7 +100,8 @@ class Head(nn.Module):
 
 def add_encoder_levels(net: nn.Module, width: float, variant: str, conv5_kernel: int) -> int:
     """Add the encoder layers shared by the flow and depth-motion nets, conv2_1 .. conv5_1
-    (spec tables 1.1 and 1.2; only conv5's kernel differs). Returns conv5_1's channel count."""
+    (the layer tables of docs/reference.md §1.1 and §1.2; only conv5's kernel differs).
+    Returns conv5_1's channel count."""
     c = lambda n: scaled(n, width)  # noqa: E731
     v1 = variant == "v1"
     net.conv2_1 = ConvPair(c(64), c(64), 3, 1, variant)

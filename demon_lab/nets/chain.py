@@ -1,12 +1,15 @@
-"""The DeMoN chain: bootstrap net, iterative net, refinement net (spec section 1.4).
+"""The DeMoN chain: bootstrap net, iterative net, refinement net (docs/reference.md §1.4; DeMoN's
+``BootstrapNet``, ``IterativeNet`` and ``RefinementNet`` in `python/depthmotionnet/networks_original.py`,
+chained by `examples/example.py`).
 
 ``DeMoN.forward(image1, image2, intrinsics, iterations=3, oracle=None, gt=None)`` returns one
 :class:`Prediction` per pass — index 0 is the bootstrap net, index k the k-th iterative pass —
 and the refined full-resolution inverse depth, so an iteration sweep is an argument, not a model.
 
-Oracles are inputs (DESIGN.md section 3): ``oracle="flow"`` replaces the flow (and confidence)
-fed to the depth-motion nets with the ground-truth flow; ``oracle="depth_motion"`` replaces the
-depth, normals and motion fed to the iterative flow net with ground truth. Both need ``gt`` with
+Oracles are inputs, not separate models (the same weights run with and without them):
+``oracle="flow"`` replaces the flow (and confidence) fed to the depth-motion nets with the
+ground-truth flow; ``oracle="depth_motion"`` replaces the depth, normals and motion fed to the
+iterative flow net with ground truth. Both need ``gt`` with
 ``inv_depth`` (B, 1, H, W) and ``motion`` (B, 6). The extra inputs of every net are built by
 :func:`flow_net_inputs` and :func:`depth_motion_net_inputs`, which the training stages share.
 """

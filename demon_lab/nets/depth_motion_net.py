@@ -1,4 +1,6 @@
-"""DeMoN's depth and motion encoder-decoder (``depthmotion_block``; spec section 1.2)."""
+"""DeMoN's depth and motion encoder-decoder (``depthmotion_block`` in
+DeMoN's `python/depthmotionnet/v2/blocks.py`, ``depthmotion_block_demon_original`` in
+`python/depthmotionnet/blocks_original.py`; docs/reference.md §1.2)."""
 
 from __future__ import annotations
 

@@ -1,4 +1,6 @@
-"""DeMoN's flow encoder-decoder (``flow_block``; spec section 1.1): bootstrap and iterative."""
+"""DeMoN's flow encoder-decoder, bootstrap and iterative (``flow_block`` in DeMoN's
+`python/depthmotionnet/v2/blocks.py`, ``flow_block_demon_original`` in
+`python/depthmotionnet/blocks_original.py`; docs/reference.md §1.1)."""
 
 from __future__ import annotations
 

@@ -1,4 +1,6 @@
-"""DeMoN's depth refinement encoder-decoder (``depth_refine_block``; spec section 1.3)."""
+"""DeMoN's depth refinement encoder-decoder (``depth_refine_block`` in
+DeMoN's `python/depthmotionnet/v2/blocks.py`, ``depth_refine_block_demon_original`` in
+`python/depthmotionnet/blocks_original.py`; docs/reference.md §1.3)."""
 
 from __future__ import annotations
 

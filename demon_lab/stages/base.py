@@ -1,9 +1,9 @@
-"""Training stages: one LightningModule per encoder-decoder stage of DeMoN's schedule (spec
-section 5). Each holds the whole chain as a plain submodule; only the stage's own nets train,
-the upstream nets run frozen in eval mode, forward only.
+"""Training stages: one LightningModule per encoder-decoder stage of DeMoN's schedule
+(`training/v2/training.py`; docs/reference.md §5). Each holds the whole chain as a plain
+submodule; only the stage's own nets train, the upstream nets run frozen in eval mode, forward only.
 
-Optimiser per the spec: Adam (beta 0.9/0.999, eps 1e-6), weight decay on kernels, element-wise
-gradient clipping (the Trainer's ``gradient_clip_algorithm="value"``). Learning-rate schedules:
+Optimiser as in DeMoN's training code: Adam (beta 0.9/0.999, eps 1e-6), weight decay on kernels,
+element-wise gradient clipping (the Trainer's ``gradient_clip_algorithm="value"``). Learning-rate schedules:
 ``released`` — constant for the first third, then quadratic decay to 1e-6 at the end (the
 released code); ``supplementary`` — multistep, -20 % at each step (its Figure 1; the step
 positions are not given, demon_lab puts them at 40, 60 and 80 % of the stage).

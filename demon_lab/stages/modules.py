@@ -24,7 +24,7 @@ from demon_lab.stages.base import StageModule
 class FlowStage(StageModule):
     """Trains ``flow1`` (bootstrap) or ``flow2`` (iterative, its inputs from the frozen bootstrap
     net, or from ground truth with ``oracle='depth_motion'``). Sig weights ramp in over the first
-    third; the level-5 losses fade out over it (spec section 4).
+    third; the level-5 losses fade out over it (DeMoN's `training/v2/training.py`; docs/reference.md §4).
 
     ``sig_start`` (a fraction of the stage, default 0 as DeMoN; 1: never) holds the sig weights at 0 until
     then and starts their ramp there. A short schedule needs it: near zero flow the sig term's
@@ -86,7 +86,8 @@ def _flow_and_conf(flowconf: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
 
 
 class IterativeStage(StageModule):
-    """Trains flow2 and dm2 jointly (spec section 5, "simulated iterations").
+    """Trains flow2 and dm2 jointly (``_simulated_iterations`` of DeMoN's `training/v2/training.py`;
+    docs/reference.md §5).
 
     Each step takes the batch's ``B`` new samples (their previous prediction from the frozen
     bootstrap net) plus up to ``queue_size`` samples from a FIFO queue (their previous prediction

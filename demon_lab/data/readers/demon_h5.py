@@ -1,4 +1,5 @@
-"""DeMoN's multi-view HDF5 files (``sun3d_test.h5``, ``mvs_test.h5``, ...; spec section 6).
+"""DeMoN's multi-view HDF5 files (``sun3d_test.h5``, ``mvs_test.h5``, ...; docs/reference.md §6; DeMoN's
+`examples/create_dataset_and_use_readerop.py` writes this layout).
 
 Layout: ``/<scene>/frames/t0/v<k>/{image, depth, camera}``; ``image`` is the bytes of a WebP file
 (int8 array, attribute ``format="webp"``); ``depth`` is LZ4-compressed float16 absolute depth

@@ -1,6 +1,6 @@
 """The Middlebury 2014 "Motorcycle" pair that scikit-image ships (``skimage.data.stereo_motorcycle``).
 
-Calibration for the shipped size (scikit-image docstring; spec section 9): focal length 994.978 px,
+Calibration for the shipped size (scikit-image's docstring; docs/reference.md §9): focal length 994.978 px,
 left principal point (311.193, 254.877) px, principal-point x offset between the cameras
 doffs = 31.086 px, baseline 193.001 mm. Depth Z = baseline f / (d + doffs); the right camera sits
 at +baseline along the left camera's x axis, unrotated, so X2 = X1 - (baseline, 0, 0). The two
