@@ -1,4 +1,4 @@
-"""``python -m demon_lab [overrides]``: compose, validate, run (DESIGN.md section 1).
+"""``python -m demon_lab [overrides]``: compose, validate, run each job (:mod:`demon_lab.job`).
 
 The configuration of every job (each combination of a ``-m`` sweep) is composed and validated
 before Hydra starts, so a bad key, type or value is one line and a non-zero exit, with no MLflow
@@ -50,7 +50,7 @@ def check(args: list[str]) -> str | None:
     from omegaconf.errors import OmegaConfBaseException
 
     from demon_lab.config import ConfigError
-    from demon_lab.train import processes_launched_outside, world_size
+    from demon_lab.stages.training import processes_launched_outside, world_size
     from demon_lab.validate import validate
 
     with initialize_config_dir(CONF, version_base="1.3"):
@@ -88,7 +88,7 @@ def main() -> None:
             sys.exit(2)
     import hydra
 
-    from demon_lab.app import main_task
+    from demon_lab.job import main_task
 
     hydra.main(version_base="1.3", config_path=CONF, config_name="config")(main_task)()
 

@@ -1,4 +1,4 @@
-"""Hydra callbacks: one MLflow parent run per multirun, and the sweep's verdict.
+"""Hydra callbacks: one MLflow parent run per multirun, the study's report on it, the sweep's verdict.
 
 ``on_multirun_start`` creates the tracking store and the experiment once, before any job starts
 (parallel jobs racing to create a fresh SQLite database is a known MLflow failure), and the parent
@@ -7,14 +7,15 @@ run whose id the jobs find in ``DEMON_LAB_PARENT_RUN`` (they tag themselves with
 cluster pre-emption) continues the same parent run, so its children are every job of the sweep:
 the finished ones (skipped this time) and the ones run now.
 
-A failing job never stops the sweep (``demon_lab.app.main_task``); ``on_multirun_end`` lists the
-jobs that failed this time, marks the parent FINISHED or FAILED and exits non-zero if any failed.
+A failing job never stops the sweep (``demon_lab.job.main_task``); ``on_multirun_end`` attaches
+the study's report (its tables and figures, from every FINISHED run in the store: ``report/`` in
+the parent run's artifacts, so the dashboard shows it), lists the jobs that failed this time, marks
+the parent FINISHED or FAILED and exits non-zero if any failed.
 """
 
 from __future__ import annotations
 
-import hashlib
-import json
+import logging
 import os
 import sys
 import time
@@ -25,27 +26,7 @@ from hydra.experimental.callback import Callback
 from omegaconf import DictConfig
 
 PARENT_ENV = "DEMON_LAB_PARENT_RUN"
-
-
-def _changes_results(override: str) -> bool:
-    """False for an override of a key that is not part of a job's run key (tracking.NON_SEMANTIC:
-    launcher, store, thread count, cache folder...), e.g. ``hydra/launcher=joblib``, ``threads=1``."""
-    from demon_lab.tracking import NON_SEMANTIC
-
-    key = override.lstrip("+~").split("=", 1)[0].replace("/", ".")
-    return not any(key == k or key.startswith(k + ".") for k in NON_SEMANTIC)
-
-
-def sweep_key(config: DictConfig) -> str:
-    """The sweep's identity: its experiment, the command-line overrides that change what its
-    jobs compute and the code and scene-generator versions (as in every run key), so the same
-    sweep re-issued with another thread count, store address or launcher continues its parent
-    run, and one re-issued after a version change starts a new parent."""
-    from demon_lab.stages.cache import versions
-
-    overrides = sorted(o for o in config.hydra.overrides.task if _changes_results(o))
-    blob = json.dumps({"experiment": str(config.experiment), "overrides": overrides, **versions()})
-    return hashlib.sha256(blob.encode()).hexdigest()[:16]
+log = logging.getLogger(__name__)
 
 
 class MultirunTracking(Callback):
@@ -77,12 +58,14 @@ class MultirunTracking(Callback):
             self.tracker = Tracker(config.tracking.uri, config.experiment, config.tracking.artifact_dir)
         except Exception:  # a bad store is reported by each job with one line
             return
-        key = sweep_key(config)
+        from demon_lab.identity import sweep_key
+
+        key = sweep_key(config.experiment, config.hydra.overrides.task)
         overrides = " ".join(config.hydra.overrides.task)
         self.parent = self.tracker.find_sweep(key)
         if self.parent is not None:
             self.tracker.reopen(self.parent)
-            print(f"[demon_lab] continuing the sweep run {self.parent}: finished jobs are skipped", flush=True)
+            log.info("continuing the sweep run %s: finished jobs are skipped", self.parent)
         else:
             self.parent = self.tracker.start(f"sweep {config.experiment}: {overrides}"[:250],
                                              {f"{TAG}kind": "sweep", f"{TAG}sweep": overrides,
@@ -102,12 +85,12 @@ class MultirunTracking(Callback):
                           and self.tracker.find_finished(r.data.tags.get(f"{TAG}run_key", "")))
             self.tracker.set_tags(self.parent, {f"{TAG}jobs_finished": counts["FINISHED"],
                                                 f"{TAG}jobs_failed_now": len(failed)})
+            self._publish_study(config)
             self.tracker.finish(self.parent, "FAILED" if failed else "FINISHED")
             os.environ.pop(PARENT_ENV, None)
-            print(f"[demon_lab] sweep run {self.parent}: {counts['FINISHED']} job runs FINISHED, "
-                  f"{counts['FAILED'] - retried} FAILED"
-                  + (f" ({retried} earlier FAILED attempt(s) of jobs that have since FINISHED)" if retried else ""),
-                  flush=True)
+            log.info("sweep run %s: %d job runs FINISHED, %d FAILED%s", self.parent, counts["FINISHED"],
+                     counts["FAILED"] - retried,
+                     f" ({retried} earlier FAILED attempt(s) of jobs that have since FINISHED)" if retried else "")
         if self.server is not None:
             self.server.stop()
         if failed:
@@ -115,3 +98,20 @@ class MultirunTracking(Callback):
             print(f"error: {len(failed)} job(s) of the sweep failed (each folder has error.txt): {listing}",
                   file=sys.stderr, flush=True)
             sys.exit(1)
+
+    def _publish_study(self, config: DictConfig) -> None:
+        """The study's report (``python -m demon_lab.report NAME``, from every FINISHED run in the
+        store) as artifacts of the parent run; a sweep of an experiment without a study spec has
+        none. A report that cannot be built is a warning: the sweep's own result stands."""
+        from demon_lab import report
+
+        study = report.study_of(str(config.experiment))
+        if study is None:
+            return
+        try:
+            paths = report.publish(study, self.tracker.uri, self.parent)
+        except Exception as e:  # the jobs' runs are recorded either way
+            log.warning("study %s: no report on the sweep run (%s: %s)", study, type(e).__name__, e)
+            return
+        log.info("study %s: its report is on the sweep run %s (%d artifacts under report/)", study, self.parent,
+                 len(paths))

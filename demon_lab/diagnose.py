@@ -35,9 +35,9 @@ import torch
 
 from demon_lab import losses
 
-COLUMNS = (("epe", "epe"), ("flow", "flow"), ("gt_flow", "gt flow"), ("prior", "prior"),
-           ("prior_epe", "prior epe"), ("follow", "follow"), ("t_norm", "|t|"), ("rot_deg", "rot"),
-           ("gt_rot_deg", "gt rot"), ("nonpositive_depth", "inv<=0"))
+COLUMNS = ("epe", "flow", "gt_flow", "prior", "prior_epe", "follow", "t_norm", "rot_deg", "gt_rot_deg",
+           "nonpositive_depth")
+"""The diagnosis's quantities, in table order (their names: :data:`demon_lab.metrics.COLUMNS`)."""
 
 
 def _pixel_mean(x: torch.Tensor) -> torch.Tensor:
@@ -84,7 +84,7 @@ def diagnose_batch(chain, batch: dict, iterations: int, refine: bool = False) ->
         if refine:
             refined = chain.refine(batch["image1"], prev.inv_depth)[:, :1]
             share = (~(refined > 0)).flatten(1).float().mean(1)
-            passes.append([{**{key: math.nan for key, _ in COLUMNS}, "nonpositive_depth": float(share[i])}
+            passes.append([{**dict.fromkeys(COLUMNS, math.nan), "nonpositive_depth": float(share[i])}
                            for i in range(pair.shape[0])])
     return passes
 
@@ -94,7 +94,7 @@ def summarize(per_sample: Sequence[Sequence[dict[str, float]]]) -> list[dict[str
     out = []
     for samples in per_sample:
         means = {}
-        for key, _ in COLUMNS:
+        for key in COLUMNS:
             values = [s[key] for s in samples if math.isfinite(s[key])]
             means[key] = sum(values) / len(values) if values else math.nan
         means["pairs"] = len(samples)
@@ -103,11 +103,11 @@ def summarize(per_sample: Sequence[Sequence[dict[str, float]]]) -> list[dict[str
 
 
 def format_table(results: dict[str, list[dict[str, float]]]) -> str:
-    from demon_lab.app import text_table
+    from demon_lab.metrics import column
+    from demon_lab.tables import number, text_table
 
-    header = ["test set", "pass", *[label for _, label in COLUMNS]]
-    cell = lambda v: "-" if not math.isfinite(v) else f"{v:.3f}"  # noqa: E731
-    return text_table(header, [[name, str(r.get("pass", k)), *[cell(r[key]) for key, _ in COLUMNS]]
+    header = ["test set", "pass", *[column(key).text for key in COLUMNS]]
+    return text_table(header, [[name, str(r.get("pass", k)), *[number(r[key]) for key in COLUMNS]]
                                for name, passes in results.items() for k, r in enumerate(passes)])
 
 
@@ -116,14 +116,14 @@ def run(overrides: Sequence[str], out: str | None = None) -> dict[str, list[dict
 
     from demon_lab.__main__ import CONF
     from demon_lab.config import ConfigError, instantiate
-    from demon_lab.train import build_chain, load_stage, stage_dirs
+    from demon_lab.stages.schedule import build_chain, load_stage, stage_dirs
     from demon_lab.validate import validate
 
     with initialize_config_dir(CONF, version_base="1.3"):
         cfg = compose("config", overrides=list(overrides))
     validate(cfg)
     if cfg.get("threads") is not None:
-        from demon_lab.app import set_threads
+        from demon_lab.job import set_threads
 
         set_threads(int(cfg.threads))
     chain = build_chain(cfg)

@@ -1,4 +1,8 @@
-"""Evaluate a chain on test sets with DeMoN's protocol, for every iteration and the refined depth.
+"""Evaluation on the test sets with DeMoN's protocol (docs/reference.md §7), shared by the DeMoN
+chain and the classical baselines.
+
+:func:`evaluate_test_sets` scores every test set of a job's config with the job's method;
+:func:`evaluate_dataset` is the chain on one set, for every iteration and the refined depth.
 
 Per test set, for iteration k = 0 (bootstrap) .. ``iterations``: depth metrics of the level-2
 depth, motion metrics and flow EPE of pass k; for ``refined``: depth metrics of the refinement
@@ -9,7 +13,9 @@ in MLflow) is the refined depth with the last pass's motion and flow, as DeMoN's
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Sequence
+from dataclasses import dataclass, field
 from typing import Any
 
 import torch
@@ -17,6 +23,8 @@ from torch.utils.data import DataLoader
 
 from demon_lab import metrics
 from demon_lab.nets.chain import DeMoN
+
+log = logging.getLogger(__name__)
 
 
 @torch.no_grad()
@@ -52,7 +60,7 @@ def evaluate_dataset(chain: DeMoN, dataset, iterations: int, oracle: str | None 
                 histogram.add(metrics.pixel_depth_errors({"inv_depth": depth}, truth))
             if len(kept) < keep:
                 kept.append({"id": batch["id"][i], "image1": batch["image1"][i],
-                             "gt_inv_depth": batch["inv_depth"][i, 0],
+                             "gt_inv_depth": batch["inv_depth"][i, 0], "gt_motion": batch["motion"][i],
                              "inv_depth": depth, "flow": last.flow[i].cpu(),
                              "normals": last.normals[i].cpu(), "intrinsics": batch["intrinsics"][i]})
     return rows, kept
@@ -75,3 +83,57 @@ def summarize(rows: Sequence[dict[str, Any]], iterations: int) -> dict[str, floa
         if f"it{iterations}/{key}" in out:
             out[key] = out[f"it{iterations}/{key}"]
     return out
+
+
+@dataclass
+class TestSetResult:
+    """One test set scored by one job: per-sample rows, their means, the pixel-error histogram of
+    the final depth and the first predictions (for pictures)."""
+
+    name: str
+    rows: list[dict[str, Any]]
+    summary: dict[str, float]
+    histogram: dict[str, Any]
+    kept: list[dict[str, Any]] = field(default_factory=list)
+
+
+def evaluate_test_sets(cfg, chain: DeMoN | None, refined: bool) -> list[TestSetResult]:
+    """Score ``cfg.method`` (the chain or a classical baseline) on every set of ``cfg.data.test``.
+
+    ``chain``: the trained chain (``method=demon``; ``base_mat_f`` reads its flow), None for the
+    other baselines; ``refined``: whether the refinement net is trained (its rows are scored)."""
+    from demon_lab.baselines import summarize_baseline
+    from demon_lab.config import instantiate
+
+    keep = max(int(cfg.eval.visualize), int(cfg.eval.point_clouds))
+    results = []
+    for entry in cfg.data.test:
+        dataset = instantiate(entry)
+        log.info("evaluating on %s (%d pairs)", dataset.name, len(dataset))
+        histogram = metrics.PixelHistogram()
+        if cfg.method == "demon":
+            rows, kept = evaluate_dataset(chain, dataset, int(cfg.iterations), cfg.oracle, int(cfg.eval.batch_size),
+                                          cfg.eval.max_samples, keep=keep, refined=refined, histogram=histogram)
+            summary = summarize(rows, int(cfg.iterations))
+        else:
+            rows, kept = _evaluate_baseline(cfg, entry, dataset, chain, keep, histogram)
+            summary = summarize_baseline(rows)
+        results.append(TestSetResult(dataset.name, rows, summary, histogram.to_dict(), kept))
+    return results
+
+
+def _evaluate_baseline(cfg, entry, dataset, chain: DeMoN | None, keep: int, histogram: metrics.PixelHistogram):
+    """A classical baseline on one test set (``base_oracle`` reads the same samples at
+    ``baseline.oracle_scale`` times the resolution)."""
+    from omegaconf import OmegaConf
+
+    from demon_lab.baselines import BaselineConfig, evaluate_baseline
+    from demon_lab.config import instantiate
+
+    params = BaselineConfig(**{**OmegaConf.to_container(cfg.baseline, resolve=True), "seed": int(cfg.seed)})
+    hires = None
+    if cfg.method == "base_oracle":
+        hires = instantiate(entry, size=[int(s) * params.oracle_scale for s in cfg.data.size])
+    return evaluate_baseline(cfg.method, dataset, params, chain=chain, iterations=int(cfg.iterations),
+                             hires_dataset=hires, max_samples=cfg.eval.max_samples, keep=keep,
+                             histogram=histogram)

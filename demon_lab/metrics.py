@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass
 from typing import Any, ClassVar
 
 import numpy as np
@@ -357,3 +358,52 @@ def summarize(rows: Sequence[Mapping[str, Any]]) -> dict[str, float]:
         if not finite.all():
             means[f"n_failed_{key}"] = int((~finite).sum())
     return means
+
+
+# ----------------------------------------------------------------------------- names
+
+
+@dataclass(frozen=True)
+class Column:
+    """How one quantity is named wherever demon_lab shows it.
+
+    ``key``: its name in MLflow (``test/<set>/<key>``) and in report specs; ``text``: the
+    terminal tables' header (ASCII); ``label``: Markdown tables and figures; ``tex``: LaTeX;
+    ``paper``: its column in ``demon_lab/studies/paper_numbers.csv`` (None: the paper has none).
+    """
+
+    key: str
+    text: str
+    label: str
+    tex: str
+    paper: str | None = None
+
+
+COLUMNS: dict[str, Column] = {c.key: c for c in (
+    Column("l1_inv", "L1-inv", "L1-inv", "L1-inv", "L1-inv"),
+    Column("sc_inv", "sc-inv", "sc-inv", "sc-inv", "sc-inv"),
+    Column("l1_rel", "L1-rel", "L1-rel", "L1-rel", "L1-rel"),
+    Column("delta_1.25", "d<1.25", "δ<1.25", r"$\delta<1.25$", "delta<1.25"),
+    Column("delta_1.25_2", "d<1.25^2", "δ<1.25²", r"$\delta<1.25^2$", "delta<1.25^2"),
+    Column("delta_1.25_3", "d<1.25^3", "δ<1.25³", r"$\delta<1.25^3$", "delta<1.25^3"),
+    Column("rot_deg", "rot", "rot (°)", "rot", "rot"),
+    Column("tran_deg", "tran", "tran (°)", "tran", "tran"),
+    Column("epe", "EPE", "EPE", "EPE", "EPE"),
+    Column("n_failed", "failed", "failed", "failed"),
+    # what python -m demon_lab.diagnose measures per pass (demon_lab/diagnose.py)
+    Column("flow", "flow", "flow length", "flow length"),
+    Column("gt_flow", "gt flow", "GT flow length", "GT flow length"),
+    Column("prior", "prior", "prior flow length", "prior flow length"),
+    Column("prior_epe", "prior epe", "prior flow EPE", "prior flow EPE"),
+    Column("follow", "follow", "distance to the prior", "distance to the prior"),
+    Column("t_norm", "|t|", "|t|", r"$|t|$"),
+    Column("gt_rot_deg", "gt rot", "GT rot (°)", "GT rot"),
+    Column("nonpositive_depth", "inv<=0", "share of inverse depth <= 0", r"inverse depth $\leq 0$"),
+)}
+RESULT_COLUMNS = ("l1_inv", "sc_inv", "l1_rel", "delta_1.25", "rot_deg", "tran_deg", "epe")
+"""The columns of the main command's results table."""
+
+
+def column(key: str) -> Column:
+    """The names of ``key`` (a key without an entry is shown as itself)."""
+    return COLUMNS.get(key) or Column(key, key, key, key.replace("_", r"\_"))

@@ -1,12 +1,13 @@
-"""MLflow tracking (DESIGN.md section 6 is the contract).
+"""MLflow tracking (the contract: docs/running.md, "Tracking").
 
-One job = one MLflow run in the experiment named after the ablation (``experiment``), tagged with
-its run key (a hash of the resolved semantic config), seed, scale, git commit, versions and
+One job = one MLflow run in the experiment named after the study (``experiment``), tagged with
+its run key (:func:`demon_lab.identity.run_key`), seed, scale, git commit, versions and
 device; params are the flattened config and the resolved config is an artifact. Stage trainings
-are child runs with their loss curves. Final metrics are ``test/<set>/<metric>``,
-``test/<set>/it<k>/<metric>`` and ``test/<set>/refined/<metric>``. A run ends FINISHED only when
-the job completed and FAILED (error recorded) when it raised; a job whose run key already has a
-FINISHED run is skipped unless forced.
+are child runs with their loss curves (Lightning's ``MLFlowLogger`` on the child run). Final
+metrics are ``test/<set>/<metric>``, ``test/<set>/it<k>/<metric>`` and
+``test/<set>/refined/<metric>``. A run ends FINISHED only when the job completed and FAILED
+(error recorded) when it raised; a job whose run key already has a FINISHED run is skipped unless
+forced.
 
 The default store is ``sqlite:///mlflow.db`` in the working directory with artifacts in
 ``./mlartifacts``; a team points ``tracking.uri`` (or ``MLFLOW_TRACKING_URI``) at a server.
@@ -15,8 +16,6 @@ The default store is ``sqlite:///mlflow.db`` in the working directory with artif
 from __future__ import annotations
 
 import contextlib
-import hashlib
-import json
 import os
 import re
 import subprocess
@@ -25,14 +24,9 @@ from collections.abc import Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
-from omegaconf import DictConfig, OmegaConf
-
 from demon_lab.filelock import file_lock
 
 TAG = "demon_lab."
-# Config keys that do not change what a job computes (so they are not part of its run key).
-NON_SEMANTIC = ("tracking", "force", "hydra", "cache_dir", "eval.visualize", "eval.point_clouds", "row",
-                "data.num_workers", "threads")
 
 
 def metric_name(key: str) -> str:
@@ -55,32 +49,11 @@ def _quiet_mlflow() -> None:
     warnings.filterwarnings("ignore", category=DeprecationWarning, module="sqlalchemy")
 
 
-def semantic_config(cfg: DictConfig) -> dict[str, Any]:
-    plain = OmegaConf.to_container(cfg, resolve=True)
-    assert isinstance(plain, dict)
-    for dotted in NON_SEMANTIC:
-        node = plain
-        *parents, leaf = dotted.split(".")
-        for p in parents:
-            node = node.get(p, {})
-        if isinstance(node, dict):
-            node.pop(leaf, None)
-    return plain
-
-
-def run_key(cfg: DictConfig) -> str:
-    """Hash of the semantic config and the code and generator versions (a change of the training
-    code that changes results bumps it, so old FINISHED runs no longer count as this job)."""
-    from demon_lab.stages.cache import versions
-
-    payload = {"config": semantic_config(cfg), **versions()}
-    return hashlib.sha256(json.dumps(payload, sort_keys=True, default=str).encode()).hexdigest()[:16]
-
-
 def version_tags() -> dict[str, str]:
-    """``demon_lab.code_version`` and ``demon_lab.generator_version`` of this checkout: the versions
-    every run key includes, as tags, so a report can tell runs of older code or scenes apart."""
-    from demon_lab.stages.cache import versions
+    """``demon_lab.code_version`` and ``demon_lab.generator_version`` of this code: the versions
+    every run key includes (:func:`demon_lab.identity.versions`), as tags, so a report can tell
+    runs of older code or scenes apart."""
+    from demon_lab.identity import versions
 
     return {f"{TAG}{k}": str(v) for k, v in versions().items()}
 
@@ -179,7 +152,7 @@ class Tracker:
                 and run.data.tags.get(f"{TAG}run_key") == key)
 
     def find_sweep(self, key: str) -> str | None:
-        """The newest parent run of the sweep with this key (:func:`demon_lab.callbacks.sweep_key`)."""
+        """The newest parent run of the sweep with this key (:func:`demon_lab.identity.sweep_key`)."""
         query = f"tags.`{TAG}sweep_key` = '{key}'"
         runs = self.client.search_runs([self.experiment_id], filter_string=query, max_results=1,
                                        order_by=["attributes.start_time DESC"])
@@ -284,57 +257,6 @@ def _absolute_sqlite(uri: str) -> str:
     if uri.startswith(prefix) and not uri[len(prefix):].startswith("/"):
         return prefix + str(Path(uri[len(prefix):]).resolve())
     return uri
-
-
-def stage_logger(tracker: Tracker, run_id: str, every: int):
-    """A Lightning logger sending a stage's training curves to its MLflow run in batches."""
-    from lightning.pytorch.loggers.logger import Logger, rank_zero_experiment
-
-    class StageLogger(Logger):
-        def __init__(self):
-            super().__init__()
-            self.buffer: list[tuple[dict[str, float], int]] = []
-            self.seconds = 0.0
-
-        @property
-        def name(self) -> str:
-            return "mlflow"
-
-        @property
-        def version(self) -> str:
-            return run_id
-
-        @property
-        @rank_zero_experiment
-        def experiment(self):
-            return tracker.client
-
-        def log_hyperparams(self, params, *args, **kwargs) -> None:
-            pass
-
-        def log_metrics(self, metrics: Mapping[str, float], step: int | None = None) -> None:
-            self.buffer.append(({k: float(v) for k, v in metrics.items()}, int(step or 0)))
-            if len(self.buffer) >= max(1, 50 // max(every, 1)):
-                self.flush()
-
-        def flush(self) -> None:
-            if not self.buffer:
-                return
-            from mlflow.entities import Metric
-
-            start = time.perf_counter()
-            now = int(time.time() * 1000)
-            items = [Metric(metric_name(k), v, now, s) for values, s in self.buffer for k, v in values.items()
-                     if v == v]
-            for i in range(0, len(items), 500):
-                tracker.client.log_batch(run_id, metrics=items[i:i + 500])
-            self.buffer.clear()
-            self.seconds += time.perf_counter() - start
-
-        def finalize(self, status: str) -> None:
-            self.flush()
-
-    return StageLogger()
 
 
 class LocalServer:

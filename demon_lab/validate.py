@@ -1,8 +1,10 @@
-"""Configuration checks before any work: a wrong type or an out-of-range value is one line naming
-the key and what is allowed (raised as :class:`demon_lab.config.ConfigError`)."""
+"""Configuration checks before any work: a wrong type or an out-of-range value, or a file the job
+would read that is not there, is one line naming the key and what is allowed (raised as
+:class:`demon_lab.config.ConfigError`)."""
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
@@ -35,6 +37,32 @@ def _choice(key: str, value: Any, allowed: tuple) -> None:
     if value not in allowed:
         shown = ", ".join("null" if a is None else str(a) for a in allowed)
         raise ConfigError(f"{key}: expected one of {shown}, got {value!r}")
+
+
+PATH_KEYS = ("path", "root")
+"""Arguments of the datasets (``demon_lab.data.datasets``) that name a file or folder to read."""
+
+
+def _source_key(node: DictConfig, key: str, where: str) -> str:
+    """``where`` and, when the value comes from another key by interpolation, that key too (the
+    one a user sets): ``data.test[3].path (data.path)``."""
+    raw = node._get_node(key)._value()
+    if isinstance(raw, str) and raw.startswith("${") and raw.endswith("}") and ":" not in raw:
+        return f"{where} ({raw[2:-1]})"
+    return where
+
+
+def check_paths(cfg: DictConfig) -> None:
+    """Every file or folder the job reads exists: its test sets, and its training sets when it
+    trains. Checked before any rendering, training or tracking."""
+    sources = [(f"data.test[{i}]", entry) for i, entry in enumerate(cfg.data.test)]
+    if cfg.train and cfg.method in ("demon", "base_mat_f"):
+        sources += [(f"data.train[{i}].dataset", entry.dataset) for i, entry in enumerate(cfg.data.train)]
+    for where, node in sources:
+        for key in PATH_KEYS:
+            if key in node and node[key] is not None and not Path(str(node[key])).exists():
+                raise ConfigError(f"{_source_key(node, key, f'{where}.{key}')}: {node[key]}: no such file or "
+                                  f"directory")
 
 
 TRACKING_SCHEMES = ("sqlite", "http", "https", "postgresql", "mysql", "mssql", "file", "databricks")
@@ -129,3 +157,4 @@ def validate(cfg: DictConfig) -> None:
     if scheme not in TRACKING_SCHEMES:
         raise ConfigError(f"tracking.uri: expected a URI with one of the schemes {', '.join(TRACKING_SCHEMES)} "
                           f"(e.g. sqlite:///mlflow.db, http://127.0.0.1:5000), got {cfg.tracking.uri!r}")
+    check_paths(cfg)

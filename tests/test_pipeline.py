@@ -16,7 +16,7 @@ from hydra import compose, initialize_config_dir
 
 from demon_lab import resources
 from demon_lab.__main__ import CONF, check
-from demon_lab.tracking import run_key
+from demon_lab.identity import run_key
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -44,7 +44,7 @@ def cli(*args: str, cwd: Path) -> subprocess.CompletedProcess:
 
 @pytest.fixture(scope="module")
 def smoke_run(tmp_path_factory):
-    from demon_lab.app import run
+    from demon_lab.job import run
 
     tmp = tmp_path_factory.mktemp("smoke")
     threads = torch.get_num_threads()
@@ -118,7 +118,7 @@ def test_per_sample_metrics_table_matches_the_logged_means(smoke_run):
 
 
 def test_second_identical_invocation_is_skipped_and_stages_are_cached(smoke_run):
-    from demon_lab.app import run
+    from demon_lab.job import run
 
     tmp, result = smoke_run
     again = run(compose_config(smoke_overrides(tmp)))
@@ -158,8 +158,8 @@ def test_diagnosis_reads_the_cached_chain_and_needs_it(smoke_run, tmp_path, caps
 
 
 def test_a_job_that_raises_leaves_its_run_failed(tmp_path):
-    from demon_lab.app import run
     from demon_lab.data.sample import DataError
+    from demon_lab.job import run
 
     cfg = compose_config(smoke_overrides(tmp_path, "data.real_pair=/does/not/exist"))
     with pytest.raises(DataError, match="/does/not/exist"):
@@ -231,7 +231,7 @@ def test_experiments_exist_for_every_study():
 @pytest.mark.parametrize("scale", ["smoke", "cpu", "paper"])
 def test_longer_oracle_study_trains_dm1_four_times_the_profile_and_shares_flow1(scale):
     import demon_lab.config  # noqa: F401  (registers the ${times:} resolver, as the app does)
-    from demon_lab.train import stage_dirs
+    from demon_lab.stages.schedule import stage_dirs
 
     with initialize_config_dir(CONF, version_base="1.3"):
         base = compose("config", [f"scale={scale}", "+experiment=gt_flow_oracle", "oracle=flow"])
@@ -249,7 +249,7 @@ def test_a_stage_key_holds_only_the_loss_weights_that_stage_reads():
     through the upstream key, its dm1) is its own. no_sig changes the flow sig weights, which the
     cpu scale's flow1 never reads (sig_start 1), so there it shares supplementary's flow1 too; at
     the paper scale (sig terms from step 0) it does not."""
-    from demon_lab.train import stage_dirs
+    from demon_lab.stages.schedule import stage_dirs
 
     keys = {}
     with initialize_config_dir(CONF, version_base="1.3"):
@@ -304,7 +304,7 @@ def test_killed_training_stage_resumes_from_its_checkpoint(tmp_path):
 
     step_at_kill = torch.load(checkpoints[0], map_location="cpu", weights_only=False)["global_step"]
     assert 0 < step_at_kill < 400
-    from demon_lab.app import run
+    from demon_lab.job import run
 
     result = run(compose_config(args))
     assert result["status"] == "finished"

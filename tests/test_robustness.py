@@ -54,7 +54,7 @@ def test_truncated_and_foreign_checkpoints_are_one_line_errors(tmp_path):
 
 
 def _stage_weights(tmp: Path, *extra: str) -> list[Path]:
-    from demon_lab.train import stage_dirs
+    from demon_lab.stages.schedule import stage_dirs
 
     return [d.weights for d in stage_dirs(compose_config(smoke_overrides(tmp, *extra)))]
 
@@ -319,13 +319,12 @@ def test_the_same_config_and_seed_give_identical_metrics_on_cpu(tmp_path):
 
 
 def test_sweep_key_follows_what_the_jobs_compute_and_the_versions(monkeypatch):
-    from omegaconf import OmegaConf
 
-    from demon_lab.callbacks import sweep_key
     from demon_lab.data import synthetic
+    from demon_lab.identity import sweep_key
 
     def key(*overrides: str) -> str:
-        return sweep_key(OmegaConf.create({"experiment": "study", "hydra": {"overrides": {"task": list(overrides)}}}))
+        return sweep_key("study", list(overrides))
 
     base = key("seed=0,1", "+experiment=study")
     assert key("seed=0,1", "+experiment=study", "threads=1", "tracking=local_server") == base

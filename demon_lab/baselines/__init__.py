@@ -60,6 +60,7 @@ def evaluate_baseline(method: str, dataset, cfg: BaselineConfig, chain=None, ite
             histogram.add(metrics.pixel_depth_errors({"inv_depth": pred["inv_depth"]}, truth))
         if len(kept) < keep:
             kept.append({"id": sample["id"], "image1": sample["image1"], "gt_inv_depth": sample["inv_depth"][0],
+                         "gt_motion": sample["motion"],
                          "inv_depth": torch.as_tensor(np.asarray(pred["inv_depth"], dtype=np.float32)),
                          "flow": flow if flow is not None else torch.zeros(2, *sample["inv_depth"].shape[1:]),
                          "normals": torch.zeros(3, *sample["inv_depth"].shape[1:]),

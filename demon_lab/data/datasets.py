@@ -14,8 +14,6 @@ Each class also carries the supplementary's Table 1 metadata (``perfect_gt``, ``
 from __future__ import annotations
 
 import dataclasses
-import hashlib
-import json
 import os
 from collections.abc import Sequence
 from pathlib import Path
@@ -28,6 +26,7 @@ from demon_lab.data import sample as smp
 from demon_lab.data import synthetic
 from demon_lab.data.readers import demon_h5, middlebury, pair_folder, tum
 from demon_lab.data.synthetic import GENERATOR_VERSION
+from demon_lab.identity import data_key
 
 SPLIT_SEEDS = {"train": 0, "val": 10_000_000, "test": 20_000_000}
 """Synthetic samples of split S use seeds SPLIT_SEEDS[S] + index: disjoint ranges."""
@@ -120,10 +119,8 @@ class SyntheticDataset(PairDataset):
         self.split, self.length, self.supersample = split, int(length), int(supersample)
         self.render_size = self.size  # rendered directly at the target size and intrinsics
         self.fixed_intrinsics = False
-        key = json.dumps({"preset": dataclasses.asdict(self.preset), "size": self.render_size,
-                          "supersample": self.supersample, "version": GENERATOR_VERSION},
-                         sort_keys=True)
-        self.cache_key = hashlib.sha1(key.encode()).hexdigest()[:16]
+        self.cache_key = data_key({"preset": dataclasses.asdict(self.preset), "size": self.render_size,
+                                   "supersample": self.supersample, "version": GENERATOR_VERSION})
         if cache_dir is False:
             self.cache = None
         else:

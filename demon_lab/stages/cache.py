@@ -1,8 +1,9 @@
-"""The stage cache (DESIGN.md section 4).
+"""The stage cache (docs/running.md, "The stage cache").
 
-Every stage's result is stored under a key hashing everything that determines it: the stage's own
-config, the model and loss config, the training data config, the seed, the upstream stages' keys
-and :func:`versions` (the code's and the scene generator's). A finished stage is reused instead of
+Every stage's result is stored under a key hashing everything that determines it
+(:func:`demon_lab.identity.stage_key` of ``demon_lab.stages.schedule.describe_stage``: the stage's
+own config, the model and loss config, the training data config, the seed, the upstream stages'
+keys and the code's and the scene generator's versions). A finished stage is reused instead of
 retrained (so an iteration sweep trains once and evaluates N times), an interrupted one resumes
 from its last checkpoint, and a file lock keeps concurrent jobs from training the same stage twice.
 
@@ -14,7 +15,6 @@ Layout: ``<cache>/stages/<stage>-<key>/`` with ``last.ckpt`` (Lightning, for res
 from __future__ import annotations
 
 import contextlib
-import hashlib
 import json
 import os
 from collections.abc import Iterator, Mapping
@@ -24,21 +24,6 @@ from typing import Any
 import torch
 
 from demon_lab.filelock import file_lock
-
-CODE_VERSION = 2  # bump when training code changes what a stage produces
-
-
-def versions() -> dict[str, int]:
-    """What every stage key and run key includes besides the config: the training code's version
-    and the synthetic scene generator's (new scenes make old stages and runs stale)."""
-    from demon_lab.data.synthetic import GENERATOR_VERSION
-
-    return {"code_version": CODE_VERSION, "generator_version": GENERATOR_VERSION}
-
-
-def stage_key(description: Mapping[str, Any]) -> str:
-    blob = json.dumps({**versions(), **description}, sort_keys=True, default=str)
-    return hashlib.sha256(blob.encode()).hexdigest()[:16]
 
 
 class StageDir:

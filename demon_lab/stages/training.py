@@ -1,28 +1,28 @@
 """Train the schedule's stages that the stage cache lacks, in order, and load them all.
 
-Used by the main command (:mod:`demon_lab.app`); every trained stage is tracked as a child run of
-the job's MLflow run, with its loss curves.
+Used by the job (:mod:`demon_lab.job`), which tracks every trained stage as a child run of its
+MLflow run with the stage's loss curves. Also where a job's processes are counted: with
+``trainer.devices x trainer.num_nodes > 1`` each stage trains with DDP, the global batch split
+over the processes.
 """
 
 from __future__ import annotations
 
 import contextlib
 import gc
+import logging
 import time
 from collections.abc import Callable
-from typing import Any
 
 import lightning as L
 from omegaconf import DictConfig, OmegaConf
 
-from demon_lab import losses
 from demon_lab.nets.chain import DeMoN
-from demon_lab.stages.cache import CheckpointError, StageDir, atomic_checkpoint_io, load_checkpoint, stage_key
+from demon_lab.stages.cache import StageDir, atomic_checkpoint_io, load_checkpoint
 from demon_lab.stages.modules import STAGE_KINDS
+from demon_lab.stages.schedule import TRAINED_NETS, build_chain, load_stage, stage_dirs
 
-STAGE_ORDER = ("flow1", "dm1", "flow2", "dm2", "iterative", "refine")
-TRAINED_NETS = {"flow1": ["flow1"], "dm1": ["dm1"], "flow2": ["flow2"], "dm2": ["dm2"],
-                "iterative": ["flow2", "dm2"], "refine": ["refine_net"]}
+log = logging.getLogger(__name__)
 
 
 class TrainingDiverged(FloatingPointError):
@@ -54,48 +54,6 @@ def processes_launched_outside() -> bool:
     import os
 
     return any(os.environ.get(var, "").isdigit() for var in ("RANK", "SLURM_PROCID", "LOCAL_RANK"))
-
-
-def scheduled_stages(cfg: DictConfig) -> list[str]:
-    names = list(cfg.schedule.stages)
-    return names[: names.index(cfg.schedule.until) + 1]
-
-
-def describe_stage(cfg: DictConfig, name: str, upstream: dict[str, str]) -> dict[str, Any]:
-    """Everything that determines a stage's result (what its cache key hashes)."""
-    plain = lambda node: OmegaConf.to_container(node, resolve=True)  # noqa: E731
-    spec = cfg.schedule.stages[name]
-    return {
-        "stage": name,
-        "stage_config": plain(spec),
-        "optimisation": {k: cfg.schedule[k] for k in ("lr_schedule", "weight_decay", "grad_clip")},
-        "batch_size": spec.get("batch_size") or cfg.data.batch_size,
-        "model": {**plain(cfg.model), "size": list(cfg.data.size)},
-        # Only the weights this stage's loss reads: ablations that change another stage's terms
-        # (no_normals for the flow stages, say, or no_sig for a flow stage without sig terms)
-        # share this stage.
-        "loss": {k: float(cfg.loss[k]) for k in losses.stage_weight_keys(
-            spec.kind, float(spec.get("sig_start", 0.0)))},
-        "train_data": plain(cfg.data.train),
-        "seed": cfg.seed,
-        "upstream": dict(upstream),
-    }
-
-
-def stage_dirs(cfg: DictConfig) -> list[StageDir]:
-    """The cache entries of the scheduled stages (keys chained through the upstream keys)."""
-    upstream: dict[str, str] = {}
-    dirs = []
-    for name in scheduled_stages(cfg):
-        description = describe_stage(cfg, name, upstream)
-        key = stage_key(description)
-        dirs.append(StageDir(cfg.cache_dir, name, key, description))
-        upstream[name] = key
-    return dirs
-
-
-def build_chain(cfg: DictConfig) -> DeMoN:
-    return DeMoN(cfg.model.variant, float(cfg.model.width), tuple(cfg.data.size))
 
 
 def build_datamodule(cfg: DictConfig, batch_size: int, samples: int, skip: int = 0):
@@ -147,7 +105,7 @@ def train_stage(cfg: DictConfig, chain: DeMoN, stage: StageDir, logger: L.pytorc
         use_distributed_sampler=False,
         plugins=[atomic_checkpoint_io()])
     if resume is not None:
-        print(f"[demon_lab] resuming stage {stage.name} from step {start_step} ({resume})", flush=True)
+        log.info("resuming stage %s from step %d (%s)", stage.name, start_step, resume)
     start = time.perf_counter()
     try:
         trainer.fit(module, train_dataloaders=datamodule.train_dataloader(), ckpt_path=resume)
@@ -183,17 +141,6 @@ def _quiet_lightning() -> None:
     warnings.filterwarnings("ignore", message=".*dataloader is not resumable.*")
 
 
-def load_stage(chain: DeMoN, stage: StageDir) -> None:
-    state = stage.load()
-    for net, weights in state.items():
-        try:
-            getattr(chain, net).load_state_dict(weights)
-        except (AttributeError, RuntimeError) as e:
-            first = str(e).strip().splitlines()[0]
-            raise CheckpointError(f"checkpoint {stage.weights} does not fit this chain's {net} "
-                                  f"(another architecture, variant or width? {first[:160]})") from None
-
-
 def prepare_chain(cfg: DictConfig, on_stage: Callable[[StageDir, str], L.pytorch.loggers.Logger | None]
                   | None = None, progress: bool = True) -> tuple[DeMoN, list[StageDir], dict[str, dict]]:
     """Build the chain, train the stages the cache lacks and load every stage in order.
@@ -206,7 +153,7 @@ def prepare_chain(cfg: DictConfig, on_stage: Callable[[StageDir, str], L.pytorch
     chain = build_chain(cfg)
     figures: dict[str, dict] = {}
     if not cfg.get("train", True):
-        print("[demon_lab] train=false: evaluating the untrained chain", flush=True)
+        log.info("train=false: evaluating the untrained chain")
         return chain.eval(), [], figures
     if not all(stage.done() for stage in stage_dirs(cfg)):
         from demon_lab.config import instantiate
@@ -215,8 +162,8 @@ def prepare_chain(cfg: DictConfig, on_stage: Callable[[StageDir, str], L.pytorch
         start = time.perf_counter()
         rendered = warm_cache([instantiate(e.dataset) for e in cfg.data.train])
         if rendered:
-            print(f"[demon_lab] rendered {rendered} synthetic training scenes into the cache "
-                  f"in {time.perf_counter() - start:.0f} s", flush=True)
+            log.info("rendered %d synthetic training scenes into the cache in %.0f s", rendered,
+                     time.perf_counter() - start)
     for stage in stage_dirs(cfg):
         # Under DDP only rank 0 takes the lock (the other ranks join its training collectively).
         with stage.lock() if global_rank(cfg) == 0 else contextlib.nullcontext():
@@ -227,8 +174,8 @@ def prepare_chain(cfg: DictConfig, on_stage: Callable[[StageDir, str], L.pytorch
                 figures[stage.name] = {"cached": 1.0}
                 continue
             logger = on_stage(stage, "train") if on_stage else None
-            print(f"[demon_lab] training stage {stage.name} ({cfg.schedule.stages[stage.name].steps} steps) "
-                  f"-> {stage.path}", flush=True)
+            log.info("training stage %s (%s steps) -> %s", stage.name, cfg.schedule.stages[stage.name].steps,
+                     stage.path)
             figures[stage.name] = train_stage(cfg, chain, stage, logger, progress)
     chain.eval()
     return chain, stage_dirs(cfg), figures

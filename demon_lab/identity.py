@@ -1,0 +1,108 @@
+"""What makes two runs, stages, sweeps or rendered data sets the same: their keys, in one place.
+
+Every key is a short hash of a JSON description plus :func:`versions` (the training code's and the
+scene generator's), so a change that alters results makes older entries stale instead of reusing
+them:
+
+- run key (:func:`run_key`): a job's resolved configuration without the keys that do not change
+  what it computes (:data:`NON_SEMANTIC`); a FINISHED run with the same key is skipped.
+- stage key (:func:`stage_key`): what determines one training stage's weights (its description,
+  chained through the keys of its upstream stages: ``demon_lab.stages.schedule.describe_stage``).
+- sweep key (:func:`sweep_key`): a multirun's experiment and its result-changing overrides; the
+  same sweep re-issued continues its MLflow parent run.
+- data key (:func:`data_key`): the rendering of a synthetic preset (its cache folder).
+
+:data:`NON_SEMANTIC` also decides the job's output folder: ``hydra.job.config.override_dirname
+.exclude_keys`` in ``conf/config.yaml`` lists exactly the non-semantic keys a user can override
+(``tests/test_identity.py`` checks that the two agree).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from collections.abc import Iterable, Mapping
+from typing import Any
+
+CODE_VERSION = 2
+"""Bump when the training code changes what a stage produces."""
+
+NON_SEMANTIC = ("tracking", "force", "hydra", "cache_dir", "eval.visualize", "eval.point_clouds", "row",
+                "data.num_workers", "threads")
+"""Config keys (and whole subtrees) that do not change what a job computes: where it logs and
+caches, how many threads and loader workers it uses, what it draws, which report row it is."""
+
+
+def versions() -> dict[str, int]:
+    """What every key includes besides its description: the training code's version and the
+    synthetic scene generator's (new scenes make old stages, runs and sweeps stale)."""
+    from demon_lab.data.synthetic import GENERATOR_VERSION
+
+    return {"code_version": CODE_VERSION, "generator_version": GENERATOR_VERSION}
+
+
+def digest(payload: Any, algorithm: str = "sha256", sort_keys: bool = True) -> str:
+    """The first 16 hex digits of the hash of ``payload`` as JSON (non-JSON values as ``str``)."""
+    blob = json.dumps(payload, sort_keys=sort_keys, default=str)
+    return hashlib.new(algorithm, blob.encode()).hexdigest()[:16]
+
+
+def is_semantic(key: str) -> bool:
+    """Whether a dotted config key (or an override's key: ``+a.b``, ``group/option``) changes
+    results, i.e. lies outside every :data:`NON_SEMANTIC` subtree."""
+    key = key.lstrip("+~").split("=", 1)[0].replace("/", ".")
+    return not any(key == k or key.startswith(k + ".") for k in NON_SEMANTIC)
+
+
+def _portable(value: Any) -> Any:
+    """``value`` with the paths of files that ship inside the package written as ``bundled:NAME``:
+    where the package is installed does not change what a job computes."""
+    from demon_lab.resources import DATA
+
+    if isinstance(value, dict):
+        return {k: _portable(v) for k, v in value.items()}
+    if isinstance(value, list):
+        return [_portable(v) for v in value]
+    if isinstance(value, str) and value.startswith(str(DATA) + "/"):
+        return "bundled:" + value[len(str(DATA)) + 1:]
+    return value
+
+
+def semantic_config(cfg) -> dict[str, Any]:
+    """The resolved config as plain containers, without the :data:`NON_SEMANTIC` keys, with
+    bundled files named rather than located (:func:`_portable`)."""
+    from omegaconf import OmegaConf
+
+    plain = OmegaConf.to_container(cfg, resolve=True)
+    assert isinstance(plain, dict)
+    for dotted in NON_SEMANTIC:
+        node = plain
+        *parents, leaf = dotted.split(".")
+        for p in parents:
+            node = node.get(p, {})
+        if isinstance(node, dict):
+            node.pop(leaf, None)
+    return _portable(plain)
+
+
+def run_key(cfg) -> str:
+    """A job's identity: its semantic config and :func:`versions`."""
+    return digest({"config": semantic_config(cfg), **versions()})
+
+
+def stage_key(description: Mapping[str, Any]) -> str:
+    """A training stage's identity: its description (``describe_stage``) and :func:`versions`."""
+    return digest({**versions(), **_portable(dict(description))})
+
+
+def sweep_key(experiment: str, overrides: Iterable[str]) -> str:
+    """A multirun's identity: its experiment, the command-line overrides that change results
+    (so the same sweep re-issued with another thread count, store or launcher continues its parent
+    run) and :func:`versions` (a version change starts a new parent)."""
+    changing = sorted(o for o in overrides if is_semantic(o))
+    return digest({"experiment": str(experiment), "overrides": changing, **versions()}, sort_keys=False)
+
+
+def data_key(description: Mapping[str, Any]) -> str:
+    """A synthetic data set's rendering (its preset, size, supersampling and generator version)."""
+    return digest(description, algorithm="sha1")

@@ -1,0 +1,268 @@
+"""One job of ``python -m demon_lab``: its MLflow run, the stages the cache lacks, evaluation, results.
+
+:func:`run` is the job (called once per combination of a ``-m`` sweep); :func:`main_task` is the
+Hydra task around it, which turns known errors into one line and keeps a failing job from stopping
+its sweep. The tracking contract (what a run holds) is in docs/running.md, "Tracking".
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import logging
+import sys
+import tempfile
+from pathlib import Path
+from typing import Any
+
+from omegaconf import DictConfig, OmegaConf
+
+from demon_lab.config import ConfigError
+from demon_lab.validate import validate
+
+log = logging.getLogger(__name__)
+
+
+def job_tags(cfg: DictConfig, key: str) -> dict[str, str]:
+    """The job run's tags: its identity, the study row it belongs to, the code, versions and device."""
+    import platform
+
+    import torch
+
+    from demon_lab.tracking import TAG, git_state, version_tags
+
+    return {
+        f"{TAG}run_key": key, f"{TAG}experiment": cfg.experiment, f"{TAG}row": str(cfg.row),
+        f"{TAG}seed": str(cfg.seed), f"{TAG}scale": str(cfg.scale.name), f"{TAG}data": str(cfg.data.name),
+        f"{TAG}iterations": str(cfg.iterations), f"{TAG}oracle": str(cfg.oracle), f"{TAG}method": str(cfg.method),
+        **{f"{TAG}{k}": v for k, v in git_state().items()}, **version_tags(),
+        f"{TAG}torch": torch.__version__, f"{TAG}cuda": str(torch.version.cuda),
+        f"{TAG}device": "cuda" if torch.cuda.is_available() else "cpu", f"{TAG}host_python": platform.python_version(),
+        f"{TAG}cpu_threads": str(torch.get_num_threads()),
+    }
+
+
+def run(cfg: DictConfig) -> dict[str, Any]:
+    """One job. Returns {'status': 'finished'|'skipped'|'worker', 'run_id': ..., 'summary': ...}."""
+    validate(cfg)
+    if cfg.get("threads") is not None:
+        set_threads(int(cfg.threads))
+    if cfg.method == "demon":
+        from demon_lab.stages.training import global_rank, prepare_chain, world_size
+
+        if world_size(cfg) > 1 and global_rank(cfg) != 0:  # a DDP worker: trains; rank 0 tracks and evaluates
+            prepare_chain(cfg, None, progress=False)
+            return {"status": "worker"}
+    from demon_lab.identity import run_key
+    from demon_lab.tracking import Tracker, flatten
+
+    key = run_key(cfg)
+    tracker = Tracker(cfg.tracking.uri, cfg.experiment, cfg.tracking.artifact_dir)
+    if not cfg.force:
+        existing = tracker.find_finished(key)
+        if existing:
+            log.info("skipped: run key %s already has the FINISHED run %s (experiment %r); pass force=true to run "
+                     "it again", key, existing, cfg.experiment)
+            return {"status": "skipped", "run_id": existing, "run_key": key}
+    record = _run_id_file()
+    persisted = record.read_text().strip() if record is not None and record.is_file() else None
+    run_id = next((r for r in (persisted, tracker.find_interrupted(key)) if r and tracker.resumable(r, key)), None)
+    if run_id is not None:
+        tracker.resume(run_id)
+        tracker.set_tags(run_id, job_tags(cfg, key))  # the code that finishes it (same run key)
+        log.info("resuming the interrupted run %s (run key %s)", run_id, key)
+    else:
+        run_id = tracker.start(f"{cfg.experiment}-{key[:8]}", job_tags(cfg, key), parent_id=_parent_run())
+    if record is not None:
+        record.parent.mkdir(parents=True, exist_ok=True)
+        record.write_text(run_id + "\n")
+    try:
+        tracker.log_params(run_id, flatten(OmegaConf.to_container(cfg, resolve=True)))
+        tracker.log_text(run_id, OmegaConf.to_yaml(cfg, resolve=True), "config.yaml")
+        result = _train_and_evaluate(cfg, tracker, run_id)
+        tracker.finish(run_id, "FINISHED")
+        return {"status": "finished", "run_id": run_id, "run_key": key, **result}
+    except BaseException as e:
+        tracker.fail(run_id, e)
+        raise
+
+
+def _train_and_evaluate(cfg: DictConfig, tracker, run_id: str) -> dict[str, Any]:
+    from demon_lab.evaluate import evaluate_test_sets
+    from demon_lab.stages.training import prepare_chain
+    from demon_lab.tables import results_table
+    from demon_lab.visualize import save_visuals
+
+    stage_runs: list[str] = []
+
+    def on_stage(stage, status):
+        """A stage that trains gets a child run (a killed one resumes its own) and Lightning's
+        MLFlowLogger attached to it for the loss curves."""
+        log.info("stage %s: %s", stage.name, f"cached {stage.path}" if status == "cached" else "training")
+        if status == "cached":
+            return None
+        from lightning.pytorch.loggers import MLFlowLogger
+
+        from demon_lab.tracking import TAG
+
+        child = tracker.find_interrupted(stage.key, parent_id=run_id, tag="stage_key")
+        if child is None:
+            child = tracker.start(f"stage-{stage.name}", {f"{TAG}stage": stage.name, f"{TAG}stage_key": stage.key,
+                                                         f"{TAG}kind": "stage"}, parent_id=run_id)
+        stage_runs.append(child)
+        return MLFlowLogger(tracking_uri=tracker.uri, run_id=child)
+
+    needs_chain = cfg.method in ("demon", "base_mat_f")
+    try:
+        chain, stages, figures = (prepare_chain(cfg, on_stage, progress=sys.stderr.isatty()) if needs_chain
+                                  else (None, [], {}))
+    except BaseException as e:
+        for child in stage_runs:
+            tracker.fail(child, e)
+        raise
+    for child in stage_runs:
+        tracker.finish(child)  # MLFlowLogger ends it FINISHED already; a no-op then
+    stage_keys = {s.name: {"key": s.key, "path": str(s.path)} for s in stages}
+    tracker.log_text(run_id, json.dumps(stage_keys, indent=2) + "\n", "stage_keys.json")
+    tracker.log_metrics(run_id, {f"stage/{name}/{k}": v for name, fig in figures.items() for k, v in fig.items()})
+
+    refined = cfg.method == "demon" and (not cfg.train or "refine" in [s.name for s in stages])
+    results = evaluate_test_sets(cfg, chain, refined)
+    summary = {r.name: r.summary for r in results}
+    tracker.log_metrics(run_id, {f"test/{name}/{k}": v for name, values in summary.items() for k, v in values.items()})
+    _pause_point("metrics_logged")
+    if cfg.method == "demon":
+        passes = [*range(int(cfg.iterations) + 1), *(["refined"] if refined else [])]
+        what = f"{cfg.iterations} iterations{', oracle ' + str(cfg.oracle) if cfg.oracle else ''}"
+        pictured = "refined depth" if refined else f"pass {cfg.iterations}"
+    else:
+        passes, what, pictured = ["baseline"], f"method {cfg.method}", cfg.method
+    table = results_table(summary, passes)
+    with tempfile.TemporaryDirectory() as tmp:
+        root = Path(tmp)
+        for r in results:
+            save_visuals(root, r.name, r.kept, int(cfg.eval.visualize), int(cfg.eval.point_clouds), pictured)
+        (root / "per_sample_metrics.csv").write_text(_csv([{"dataset": r.name, **row} for r in results
+                                                            for row in r.rows]))
+        (root / "pixel_errors.json").write_text(json.dumps({r.name: r.histogram for r in results}) + "\n")
+        for name in ("pixel_errors.json", "per_sample_metrics.csv", "images", "point_clouds"):
+            if (root / name).exists():
+                tracker.log_artifact(run_id, root / name)
+    tracker.log_text(run_id, table + "\n", "results.txt")
+    log.info("results (scale %s, seed %s, %s; depth metrics on unit-baseline depth, rot/tran in degrees, EPE in "
+             "normalised flow units):\n%s", cfg.scale.name, cfg.seed, what, table)
+    return {"summary": summary, "figures": figures}
+
+
+def _csv(rows: list[dict[str, Any]]) -> str:
+    keys: list[str] = []
+    for r in rows:
+        keys += [k for k in r if k not in keys]
+    out = io.StringIO()
+    writer = csv.DictWriter(out, fieldnames=keys)
+    writer.writeheader()
+    writer.writerows(rows)
+    return out.getvalue()
+
+
+def _pause_point(name: str) -> None:
+    """A named point where ``DEMON_LAB_PAUSE_AT=name`` holds the job (the robustness tests kill it
+    there: in the middle of its MLflow logging)."""
+    import os
+    import time
+
+    if os.environ.get("DEMON_LAB_PAUSE_AT") == name:
+        log.info("paused at %s", name)
+        time.sleep(3600)
+
+
+def _hydra_output_dir(multirun_only: bool = False) -> Path | None:
+    """The job's Hydra output folder (deterministic: named after its overrides), or None outside
+    Hydra (tests call :func:`run` directly) or, with ``multirun_only``, in a single run."""
+    try:
+        from hydra.core.hydra_config import HydraConfig
+        from hydra.types import RunMode
+
+        hydra_cfg = HydraConfig.get()
+    except ValueError:
+        return None
+    if multirun_only and hydra_cfg.mode != RunMode.MULTIRUN:
+        return None
+    return Path(hydra_cfg.runtime.output_dir)
+
+
+def _run_id_file() -> Path | None:
+    """``run_id`` in the job's output folder: a re-issued job finds its run."""
+    folder = _hydra_output_dir()
+    return folder / "run_id" if folder is not None else None
+
+
+def _parent_run() -> str | None:
+    """The multirun's parent run id (created once per sweep by the Hydra callback), if any."""
+    import os
+
+    from demon_lab.callbacks import PARENT_ENV
+
+    return os.environ.get(PARENT_ENV) or None
+
+
+def known_errors() -> tuple[type[BaseException], ...]:
+    """Errors that are the user's to fix (a config, data, store or checkpoint problem, a diverged
+    stage): one line, no traceback."""
+    from demon_lab.data.sample import DataError
+    from demon_lab.stages.cache import CheckpointError
+    from demon_lab.stages.training import TrainingDiverged
+    from demon_lab.tracking import TrackingError
+
+    return ConfigError, DataError, TrackingError, CheckpointError, TrainingDiverged
+
+
+def set_threads(n: int) -> None:
+    """Limit this process's torch and OpenCV CPU threads: processes that share cores, each running
+    a thread per core, slow each other down far more than the share they give up."""
+    import cv2
+    import torch
+
+    torch.set_num_threads(n)
+    cv2.setNumThreads(n)
+
+
+def main_task(cfg: DictConfig) -> None:
+    """Hydra task. A single run exits non-zero with one line on a configuration, data,
+    tracking-store or checkpoint error or diverged training, and with the traceback on anything
+    else. In a multirun a failing job never stops the sweep: its run is
+    FAILED with the error recorded, it prints one line, leaves ``error.txt`` (with the traceback)
+    in its output folder, and the sweep goes on; the sweep's end lists the failures and exits
+    non-zero (:class:`demon_lab.callbacks.MultirunTracking`)."""
+    import traceback
+
+    job_dir = _hydra_output_dir(multirun_only=True)
+    marker = job_dir / "error.txt" if job_dir is not None else None
+    if marker is not None:
+        marker.unlink(missing_ok=True)
+    server = None
+    try:
+        from demon_lab.stages.training import global_rank
+
+        if cfg.tracking.get("server") and global_rank(cfg) == 0:  # DDP workers only train
+            from demon_lab.tracking import LocalServer
+
+            server = LocalServer(cfg.tracking.server)
+            server.start()
+        run(cfg)
+    except Exception as e:
+        known = isinstance(e, known_errors())
+        if marker is None:
+            if not known:
+                raise
+            print(f"error: {e}", file=sys.stderr)
+            sys.exit(2)
+        marker.parent.mkdir(parents=True, exist_ok=True)
+        marker.write_text("".join(traceback.format_exception(e)))
+        line = str(e).strip().splitlines()[0] if str(e).strip() else ""
+        what = line if known else f"{type(e).__name__}: {line}"
+        print(f"error: {what} (traceback in {marker})", file=sys.stderr, flush=True)
+    finally:
+        if server is not None:
+            server.stop()

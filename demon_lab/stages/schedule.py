@@ -1,0 +1,80 @@
+"""The schedule's stages as cache entries: which stages a job trains, what each one's key hashes,
+which nets it trains, and how a finished stage is loaded into the chain.
+
+The schedule (``conf/schedule/``) lists the stages in the released code's order: flow1, dm1, flow2,
+dm2, iterative, refine (DeMoN's ``training/v2/training.py``; docs/reference.md §5). Each stage's key
+chains the keys of the stages before it, so a change upstream retrains everything downstream
+(docs/running.md, "The stage cache").
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from omegaconf import DictConfig, OmegaConf
+
+from demon_lab import losses
+from demon_lab.identity import stage_key
+from demon_lab.nets.chain import DeMoN
+from demon_lab.stages.cache import CheckpointError, StageDir
+
+STAGE_ORDER = ("flow1", "dm1", "flow2", "dm2", "iterative", "refine")
+TRAINED_NETS = {"flow1": ["flow1"], "dm1": ["dm1"], "flow2": ["flow2"], "dm2": ["dm2"],
+                "iterative": ["flow2", "dm2"], "refine": ["refine_net"]}
+"""The chain's nets (attributes of :class:`demon_lab.nets.DeMoN`) each stage trains and stores."""
+
+
+def scheduled_stages(cfg: DictConfig) -> list[str]:
+    """The stages a job needs: the schedule's, up to ``schedule.until``."""
+    names = list(cfg.schedule.stages)
+    return names[: names.index(cfg.schedule.until) + 1]
+
+
+def describe_stage(cfg: DictConfig, name: str, upstream: dict[str, str]) -> dict[str, Any]:
+    """Everything that determines a stage's result (what its cache key hashes)."""
+    plain = lambda node: OmegaConf.to_container(node, resolve=True)  # noqa: E731
+    spec = cfg.schedule.stages[name]
+    return {
+        "stage": name,
+        "stage_config": plain(spec),
+        "optimisation": {k: cfg.schedule[k] for k in ("lr_schedule", "weight_decay", "grad_clip")},
+        "batch_size": spec.get("batch_size") or cfg.data.batch_size,
+        "model": {**plain(cfg.model), "size": list(cfg.data.size)},
+        # Only the weights this stage's loss reads: ablations that change another stage's terms
+        # (no_normals for the flow stages, say, or no_sig for a flow stage without sig terms)
+        # share this stage.
+        "loss": {k: float(cfg.loss[k]) for k in losses.stage_weight_keys(
+            spec.kind, float(spec.get("sig_start", 0.0)))},
+        "train_data": plain(cfg.data.train),
+        "seed": cfg.seed,
+        "upstream": dict(upstream),
+    }
+
+
+def stage_dirs(cfg: DictConfig) -> list[StageDir]:
+    """The cache entries of the scheduled stages (keys chained through the upstream keys)."""
+    upstream: dict[str, str] = {}
+    dirs = []
+    for name in scheduled_stages(cfg):
+        description = describe_stage(cfg, name, upstream)
+        key = stage_key(description)
+        dirs.append(StageDir(cfg.cache_dir, name, key, description))
+        upstream[name] = key
+    return dirs
+
+
+def build_chain(cfg: DictConfig) -> DeMoN:
+    """The untrained chain of the config's variant, width and input size."""
+    return DeMoN(cfg.model.variant, float(cfg.model.width), tuple(cfg.data.size))
+
+
+def load_stage(chain: DeMoN, stage: StageDir) -> None:
+    """Load a finished stage's nets into ``chain`` (one CheckpointError line if they do not fit)."""
+    state = stage.load()
+    for net, weights in state.items():
+        try:
+            getattr(chain, net).load_state_dict(weights)
+        except (AttributeError, RuntimeError) as e:
+            first = str(e).strip().splitlines()[0]
+            raise CheckpointError(f"checkpoint {stage.weights} does not fit this chain's {net} "
+                                  f"(another architecture, variant or width? {first[:160]})") from None
