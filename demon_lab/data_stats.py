@@ -38,6 +38,8 @@ import numpy as np
 from omegaconf import DictConfig
 
 from demon_lab.config import ConfigError
+from demon_lab.resources import CONF
+from demon_lab.tables import text_table
 
 KEYS = ("n_pairs", "rot_mean_deg", "rot_std_deg", "tri_mean_deg", "tri_std_deg",
         "valid_fraction", "visible_fraction", "median_depth", "zero_flow_epe", "tran_x_negative_fraction",
@@ -114,9 +116,7 @@ def format_table(stats: dict[str, Any]) -> str:
            f"{stats['tri_mean_deg']:.1f}", f"{stats['tri_std_deg']:.1f}", str(stats["n_pairs"]),
            f"{stats['valid_fraction']:.2f}", f"{stats['visible_fraction']:.2f}",
            f"{stats['median_depth']:.2f}")
-    widths = [max(len(a), len(b)) for a, b in zip(header, row)]
-    line = lambda cells: "  ".join(c.ljust(w) for c, w in zip(cells, widths))  # noqa: E731
-    return "\n".join([line(header), line(row)])
+    return text_table(header, [row], left=4)
 
 
 def split_datasets(cfg: DictConfig) -> list:
@@ -141,7 +141,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     return stats
 
 
-@hydra.main(version_base="1.3", config_path="../conf", config_name="data_stats")
+@hydra.main(version_base="1.3", config_path=str(CONF), config_name="data_stats")
 def main(cfg: DictConfig) -> None:
     from omegaconf.errors import OmegaConfBaseException
 

@@ -1,4 +1,4 @@
-"""DeMoN's evaluation protocol, exactly (spec section 7).
+"""DeMoN's evaluation protocol, exactly (docs/reference.md §7; DeMoN's `python/depthmotionnet/evaluation/metrics.py`).
 
 Inputs are numpy arrays or torch tensors; everything is computed in float64. The per-sample
 functions (:func:`depth_errors`, :func:`motion_errors`, :func:`flow_epe`) reproduce DeMoN's

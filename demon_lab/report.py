@@ -1,21 +1,27 @@
 """``python -m demon_lab.report NAME [--all] [--run]``: paper-style tables and figures from MLflow.
 
-An ablation spec (``ablations/NAME.yaml``) names the runs (``runs``: the override lists of
-``python -m demon_lab -m`` commands), the seeds expected, the test sets (each mapped to the
-paper's dataset whose numbers stand beside it) and tables whose rows select runs by tag or param
-(``match``) and read one pass's metrics (``metrics``: ``it<k>``, ``refined`` or ``""`` for the
-summary). The report reads FINISHED runs of this checkout's code and scene-generator versions
-only (older ones are stale: counted and named, not used), keeps the newest run per (row, seed), aggregates
-seeds (mean, sample std, 95 % t-interval, n) and writes ``reports/NAME.md``, ``.csv``, ``.tex``
-and ``reports/figures/NAME_*.png``. FAILED runs (unless their job, or their row and seed, has a
-newer FINISHED run) and seeds without a run are listed.
+A study spec (``demon_lab/studies/NAME.yaml``, named after its experiment) names the runs
+(``runs``: the override lists of ``python -m demon_lab -m`` commands), the seeds expected, the test
+sets (each mapped to the paper's dataset whose numbers stand beside it) and tables whose rows
+select runs by tag or param (``match``) and read one pass's metrics (``metrics``: ``it<k>``,
+``refined`` or ``""`` for the summary). The report reads FINISHED runs of this checkout's code and
+scene-generator versions only (older ones are stale: counted and named, not used), keeps the newest
+run per (row, seed), aggregates seeds (mean, sample std, 95 % t-interval, n) and writes
+``reports/NAME.md``, ``.csv``, ``.tex`` and ``reports/figures/NAME_*.png``. FAILED runs (unless
+their job, or their row and seed, has a newer FINISHED run) and seeds without a run are listed.
 
 ``--run`` first executes the spec's commands (skip-if-finished makes that incremental).
+:func:`publish` logs a study's report as artifacts of a run (a sweep's parent run).
+
+The runs come from ``mlflow.search_runs`` as one DataFrame (``run_id``, ``status``,
+``start_time``, ``artifact_uri``, ``tags.*``, ``params.*``, ``metrics.*``); rows are picked by
+boolean masks on it and the seeds of a cell are aggregated with ``groupby``.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import csv
 import io
 import json
@@ -24,102 +30,77 @@ import os
 import shutil
 import subprocess
 import sys
+import tempfile
 from collections import defaultdict
-from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
+from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
+import numpy as np
+import pandas as pd
 import yaml
 
-from demon_lab.resources import STUDIES as ABLATIONS
+from demon_lab.metrics import column
+from demon_lab.resources import STUDIES
 from demon_lab.tracking import TAG, metric_name, version_tags
 
-PAPER_COLUMNS = {"l1_inv": "L1-inv", "sc_inv": "sc-inv", "l1_rel": "L1-rel", "delta_1.25": "delta<1.25",
-                 "delta_1.25_2": "delta<1.25^2", "delta_1.25_3": "delta<1.25^3", "rot_deg": "rot",
-                 "tran_deg": "tran", "epe": "EPE"}
-LABELS = {"l1_inv": "L1-inv", "sc_inv": "sc-inv", "l1_rel": "L1-rel", "delta_1.25": "δ<1.25",
-          "delta_1.25_2": "δ<1.25²", "delta_1.25_3": "δ<1.25³", "rot_deg": "rot (°)", "tran_deg": "tran (°)",
-          "epe": "EPE", "n_failed": "failed"}
 FIGURES = ("iterations", "pixel_histograms", "motion_distributions", "qualitative")
+CELL_KEYS = ("table", "dataset", "row", "column")
+"""What one cell of a report table is keyed by (the index of ``build(...)["cells"]``)."""
+INFO_COLUMNS = ("run_id", "experiment_id", "status", "artifact_uri", "start_time", "end_time")
+"""The columns ``mlflow.search_runs`` returns for every run (it returns only these when none match)."""
 
 
 class ReportError(ValueError):
     """A spec that cannot be read or does not fit the report's format."""
 
 
-@dataclass
-class Run:
-    run_id: str
-    experiment: str
-    status: str
-    tags: dict[str, str]
-    params: dict[str, str]
-    metrics: dict[str, float]
-    start_time: int
-    artifact_uri: str
-
-    def get(self, key: str) -> str | None:
-        """A tag (``demon_lab.<key>``) or else a param; None if neither exists."""
-        if f"{TAG}{key}" in self.tags:
-            return self.tags[f"{TAG}{key}"]
-        return self.params.get(key)
-
-    def artifact(self, path: str) -> Path | None:
-        from urllib.parse import unquote, urlparse
-
-        parsed = urlparse(self.artifact_uri)
-        root = Path(unquote(parsed.path)) if parsed.scheme in ("file", "") else None
-        target = root / path if root is not None else None
-        return target if target is not None and target.exists() else None
+def _shown(name: str, directory: Path) -> str:
+    """How messages name a spec file: ``demon_lab/studies/NAME.yaml`` for the shipped ones."""
+    return f"demon_lab/studies/{name}.yaml" if Path(directory) == STUDIES else str(Path(directory) / f"{name}.yaml")
 
 
-@dataclass
-class Cell:
-    values: list[float] = field(default_factory=list)
-
-    @property
-    def n(self) -> int:
-        return len(self.values)
-
-    @property
-    def mean(self) -> float:
-        return sum(self.values) / self.n if self.n else math.nan
-
-    @property
-    def std(self) -> float:
-        if self.n < 2:
-            return math.nan
-        m = self.mean
-        return math.sqrt(sum((v - m) ** 2 for v in self.values) / (self.n - 1))
-
-    @property
-    def ci95(self) -> float:
-        """Half-width of the 95 % t-interval of the mean (NaN below 2 values)."""
-        if self.n < 2:
-            return math.nan
-        from scipy.stats import t
-
-        return float(t.ppf(0.975, self.n - 1)) * self.std / math.sqrt(self.n)
+def study_of(experiment: str, directory: Path = STUDIES) -> str | None:
+    """The study whose spec reports ``experiment``: its own spec (same name) first, else the first
+    spec (by name) with a table of that experiment; None if no spec reports it. A spec that does not
+    parse is passed over (``load_spec`` names its problem when it is reported)."""
+    directory = Path(directory)
+    if (directory / f"{experiment}.yaml").is_file():
+        return experiment
+    for path in sorted(directory.glob("*.yaml")):
+        try:
+            spec = yaml.safe_load(path.read_text()) or {}
+        except yaml.YAMLError:
+            continue
+        tables = spec.get("tables") if isinstance(spec, Mapping) else None
+        if any(isinstance(t, Mapping) and t.get("experiment") == experiment for t in tables or []):
+            return path.stem
+    return None
 
 
-def load_spec(name: str, directory: Path = ABLATIONS) -> dict[str, Any]:
+def load_spec(name: str, directory: Path = STUDIES) -> dict[str, Any]:
+    directory = Path(directory)
     path = directory / f"{name}.yaml"
     if not path.is_file():
+        owner = study_of(name, directory)
+        if owner is not None:
+            raise ReportError(f"{name} is reported by the study {owner}: python -m demon_lab.report {owner}")
         known = ", ".join(sorted(p.stem for p in directory.glob("*.yaml")))
-        raise ReportError(f"ablation {name!r}: no {path}; known: {known}")
+        raise ReportError(f"study spec {name!r}: no {_shown(name, directory)}; known: {known}")
     spec = yaml.safe_load(path.read_text()) or {}
     for key in ("title", "tables", "datasets"):
         if key not in spec:
-            raise ReportError(f"ablations/{name}.yaml: missing key {key!r}")
+            raise ReportError(f"{_shown(name, directory)}: missing key {key!r}")
     for figure in spec.get("figures", []):
         if figure not in FIGURES:
-            raise ReportError(f"ablations/{name}.yaml: figures: expected some of {FIGURES}, got {figure!r}")
+            raise ReportError(f"{_shown(name, directory)}: figures: expected some of {FIGURES}, got {figure!r}")
     spec["name"] = name
     return spec
 
 
-def paper_numbers(path: Path = ABLATIONS / "paper_numbers.csv") -> list[dict[str, str]]:
+def paper_numbers(path: Path = STUDIES / "paper_numbers.csv") -> list[dict[str, str]]:
+    # Kept as text rows (csv): pandas would turn the table numbers ("2") and empty cells into numbers
+    # and NaN, and paper_cells compares and reads them as the CSV spells them.
     with open(path, newline="") as f:
         return list(csv.DictReader(f))
 
@@ -135,100 +116,197 @@ def paper_cells(rows: Sequence[Mapping[str, str]], ref: Mapping[str, Any] | None
         if (r["table"] == str(ref["table"]) and r["dataset"] == dataset and r["method"] == ref["method"]
                 and (not wanted or r["row"] in wanted)):
             for c in columns:
-                text = r.get(PAPER_COLUMNS.get(c, ""), "")
+                paper = column(c).paper
+                text = r.get(paper, "") if paper else ""
                 if text not in ("", None) and c not in out:
                     out[c] = float(text)
     return out
 
 
-def fetch_runs(uri: str, experiments: Sequence[str]) -> list[Run]:
-    """Every top-level job run (not stage runs) of the named experiments, any status."""
+# ----------------------------------------------------------------------------- runs
+
+
+@contextlib.contextmanager
+def _tracking_uri(uri: str) -> Iterator[None]:
+    """``mlflow.search_runs`` reads the process's tracking URI (it takes none): set ``uri`` for the
+    block, then put back what was there, including ``MLFLOW_TRACKING_URI``, which
+    ``mlflow.set_tracking_uri`` exports (and unsets on None)."""
+    import mlflow
+
+    previous = mlflow.get_tracking_uri() if mlflow.is_tracking_uri_set() else None
+    env = os.environ.get("MLFLOW_TRACKING_URI")
+    mlflow.set_tracking_uri(uri)
+    try:
+        yield
+    finally:
+        mlflow.set_tracking_uri(previous)
+        if env is None:
+            os.environ.pop("MLFLOW_TRACKING_URI", None)
+        else:
+            os.environ["MLFLOW_TRACKING_URI"] = env
+
+
+def _column(runs: pd.DataFrame, name: str) -> pd.Series:
+    """A column of the runs frame, or all None where no run has it (search_runs only makes columns
+    for the tags, params and metrics some run has)."""
+    return runs[name] if name in runs.columns else pd.Series(None, index=runs.index, dtype=object)
+
+
+def field(runs: pd.DataFrame, key: str) -> pd.Series:
+    """Per run, the tag ``demon_lab.<key>`` or else the param ``key``; None/NaN where neither exists."""
+    tag = _column(runs, f"tags.{TAG}{key}")
+    return tag.where(tag.notna(), _column(runs, f"params.{key}"))
+
+
+def fetch_runs(uri: str, experiments: Sequence[str]) -> pd.DataFrame:
+    """Every top-level job run (not stage runs, nor a sweep's parent) of the named experiments, any
+    status: ``mlflow.search_runs``'s frame plus ``experiment`` (its name) and ``seed`` (an int, 0
+    where untagged), ordered by experiment (as named) and newest first."""
+    import mlflow
     from mlflow.tracking import MlflowClient
 
     client = MlflowClient(tracking_uri=uri)
-    runs: list[Run] = []
-    for name in experiments:
-        exp = client.get_experiment_by_name(name)
-        if exp is None:
-            continue
-        token = None
-        while True:
-            page = client.search_runs([exp.experiment_id], max_results=1000, page_token=token)
-            for r in page:
-                if r.data.tags.get(f"{TAG}kind") == "stage" or f"{TAG}run_key" not in r.data.tags:
-                    continue
-                runs.append(Run(r.info.run_id, name, r.info.status, dict(r.data.tags), dict(r.data.params),
-                                dict(r.data.metrics), r.info.start_time or 0, r.info.artifact_uri))
-            token = page.token
-            if not token:
-                break
-    return runs
+    found = {name: exp.experiment_id for name in experiments if (exp := client.get_experiment_by_name(name))}
+    if found:  # (search_runs given no experiment that exists would search the Default one)
+        with _tracking_uri(uri):
+            runs = mlflow.search_runs(experiment_names=list(found), output_format="pandas")
+    else:
+        runs = pd.DataFrame(columns=list(INFO_COLUMNS))
+    runs = runs[_column(runs, f"tags.{TAG}run_key").notna() & _column(runs, f"tags.{TAG}kind").ne("stage")]
+    order = {name: i for i, name in enumerate(experiments)}
+    runs = runs.assign(experiment=runs["experiment_id"].map({v: k for k, v in found.items()}),
+                       seed=pd.to_numeric(field(runs, "seed"), errors="coerce").fillna(0).astype(int))
+    # lexsort over several keys is stable: runs started in the same millisecond keep the store's order
+    runs = runs.assign(_order=runs["experiment"].map(order)).sort_values(["_order", "start_time"],
+                                                                         ascending=[True, False])
+    return runs.drop(columns="_order").reset_index(drop=True)
 
 
-def _matches(run: Run, match: Mapping[str, Any]) -> bool:
-    return all(run.get(k) == ("None" if v is None else str(v)) for k, v in (match or {}).items())
+def _mask(runs: pd.DataFrame, match: Mapping[str, Any] | None) -> pd.Series:
+    """The runs whose tags/params equal every value of a row's ``match`` (None matches "None")."""
+    mask = pd.Series(True, index=runs.index)
+    for k, v in (match or {}).items():
+        mask &= field(runs, k).eq("None" if v is None else str(v))
+    return mask
 
 
-def select(runs: Sequence[Run], experiment: str, match: Mapping[str, Any]) -> dict[int, Run]:
-    """The newest FINISHED run per seed of one row."""
-    chosen: dict[int, Run] = {}
-    for run in runs:
-        if run.experiment != experiment or run.status != "FINISHED" or not _matches(run, match):
-            continue
-        seed = int(run.get("seed") or 0)
-        if seed not in chosen or run.start_time > chosen[seed].start_time:
-            chosen[seed] = run
-    return chosen
+def current_versions(runs: pd.DataFrame, current: Mapping[str, str]) -> pd.Series:
+    """The runs tagged with this checkout's code and generator versions (the others are stale)."""
+    mask = pd.Series(True, index=runs.index)
+    for k, v in current.items():
+        mask &= _column(runs, f"tags.{k}").eq(v)
+    return mask
+
+
+def choose(spec: Mapping[str, Any], runs: pd.DataFrame) -> pd.DataFrame:
+    """The runs each table row counts: per (table, row, seed) the newest FINISHED run of the table's
+    experiment that matches the row; the runs' columns plus ``table`` and ``row`` (its label)."""
+    finished = runs[runs["status"] == "FINISHED"]
+    candidates = [finished[(finished["experiment"] == table["experiment"]) & _mask(finished, row.get("match"))]
+                  .assign(table=table["name"], row=row["label"])
+                  for table in spec["tables"] for row in table["rows"]]
+    if not candidates:
+        return runs.head(0).assign(table=None, row=None)
+    together = pd.concat(candidates, ignore_index=True)
+    newest = together.sort_values("start_time", ascending=False, kind="stable")
+    return newest.drop_duplicates(["table", "row", "seed"]).sort_values("seed", kind="stable")
 
 
 def metric_key(dataset: str, prefix: str, column: str) -> str:
     return metric_name(f"test/{dataset}/{prefix + '/' if prefix else ''}{column}")
 
 
-def build(spec: Mapping[str, Any], runs: Sequence[Run]) -> dict[str, Any]:
-    """Aggregated cells: {table: {dataset: {row: {column: Cell}}}}, the runs used, missing seeds."""
+def long_values(spec: Mapping[str, Any], chosen: pd.DataFrame) -> pd.DataFrame:
+    """The values the cells aggregate, one per (table, dataset, row, column, seed): each counted run's
+    metric of the row's pass, finite values only (a pass without a pixel of positive depth logs none)."""
+    wanted = pd.DataFrame(
+        [(table["name"], dataset, row["label"], c, "metrics." + metric_key(dataset, row.get("metrics", ""), c))
+         for table in spec["tables"] for row in table["rows"] for dataset in spec["datasets"]
+         for c in table["columns"]], columns=[*CELL_KEYS, "metric"])
+    present = [m for m in wanted["metric"].unique() if m in chosen.columns]
+    if not present or chosen.empty:
+        return pd.DataFrame(columns=[*CELL_KEYS, "seed", "value"])
+    values = chosen.melt(id_vars=["table", "row", "seed"], value_vars=present, var_name="metric", value_name="value")
+    long = wanted.merge(values, on=["table", "row", "metric"])
+    long["value"] = long["value"].astype(float)
+    return long[np.isfinite(long["value"])][[*CELL_KEYS, "seed", "value"]].reset_index(drop=True)
+
+
+def aggregate(values: pd.DataFrame, by: Sequence[str] = CELL_KEYS) -> pd.DataFrame:
+    """Per group of ``by``: mean, sample std, n, the values (by seed) and the half-width of the 95 %
+    t-interval of the mean, t.ppf(0.975, n - 1) * std / sqrt(n) (NaN for n < 2)."""
+    from scipy.stats import t
+
+    ordered = values.sort_values("seed", kind="stable") if "seed" in values.columns else values
+    cells = ordered.groupby(list(by))["value"].agg(mean="mean", std="std", n="count", values=list)
+    n = cells["n"]
+    cells["ci95"] = t.ppf(0.975, (n - 1).where(n > 1)) * cells["std"] / np.sqrt(n)
+    return cells
+
+
+class Cell(NamedTuple):
+    """One aggregated cell as plain Python numbers (``csv`` writes numpy floats as ``np.float64(...)``)."""
+
+    mean: float = math.nan
+    std: float = math.nan
+    ci95: float = math.nan
+    n: int = 0
+    values: tuple[float, ...] = ()
+
+
+def cell(result: Mapping[str, Any], table: str, dataset: str, row: str, col: str) -> Cell:
+    """A cell of ``build``'s result; an empty one (n = 0) where no counted run logged a finite value."""
+    cells: pd.DataFrame = result["cells"]
+    key = (table, dataset, row, col)
+    if key not in cells.index:
+        return Cell()
+    c = cells.loc[key]
+    return Cell(float(c["mean"]), float(c["std"]), float(c["ci95"]), int(c["n"]), tuple(map(float, c["values"])))
+
+
+def _has_values(result: Mapping[str, Any], table: str, dataset: str) -> bool:
+    index = result["cells"].index
+    return bool(((index.get_level_values("table") == table) & (index.get_level_values("dataset") == dataset)).any())
+
+
+def build(spec: Mapping[str, Any], runs: pd.DataFrame) -> dict[str, Any]:
+    """``cells``: the aggregate per (table, dataset, row, column); ``used``: the runs counted (one
+    row per table row and seed); ``missing``: the (row, seed)s without a FINISHED run."""
     seeds = [int(s) for s in spec.get("seeds", [])]
-    cells: dict[str, dict[str, dict[str, dict[str, Cell]]]] = {}
-    used: dict[str, dict[str, dict[int, Run]]] = {}
+    chosen = choose(spec, runs)
     missing: list[str] = []
     for table in spec["tables"]:
-        per_row = {row["label"]: select(runs, table["experiment"], row.get("match", {})) for row in table["rows"]}
-        used[table["name"]] = per_row
         for row in table["rows"]:
-            absent = [s for s in seeds if s not in per_row[row["label"]]]
+            have = set(chosen["seed"][(chosen["table"] == table["name"]) & (chosen["row"] == row["label"])])
+            absent = [s for s in seeds if s not in have]
             if absent:
                 missing.append(f"{table['name']} / {row['label']}: no FINISHED run for seed(s) "
                                f"{', '.join(map(str, absent))}")
-        cells[table["name"]] = {}
-        for dataset in spec["datasets"]:
-            cells[table["name"]][dataset] = {}
-            for row in table["rows"]:
-                entry = {}
-                for column in table["columns"]:
-                    cell = Cell()
-                    for _, run in sorted(per_row[row["label"]].items()):
-                        v = run.metrics.get(metric_key(dataset, row.get("metrics", ""), column))
-                        if v is not None and math.isfinite(v):
-                            cell.values.append(v)
-                    entry[column] = cell
-                cells[table["name"]][dataset][row["label"]] = entry
-    return {"cells": cells, "used": used, "missing": missing}
+    return {"cells": aggregate(long_values(spec, chosen)), "used": chosen, "missing": missing}
 
 
-def _superseded(failed: Run, spec: Mapping[str, Any], runs: Sequence[Run], used: Mapping[str, Any]) -> bool:
-    """A FAILED run whose job was re-run to FINISHED (same run key), or whose row and seed have a
-    newer FINISHED run in the table (a later attempt, e.g. after a code change)."""
-    if any(r.status == "FINISHED" and r.get("run_key") == failed.get("run_key") for r in runs):
-        return True
-    seed = int(failed.get("seed") or 0)
+def _superseded(failed: pd.DataFrame, spec: Mapping[str, Any], runs: pd.DataFrame, used: pd.DataFrame) -> pd.Series:
+    """Per FAILED run: whether its job was re-run to FINISHED (same run key), or its row and seed
+    have a newer FINISHED run in a table (a later attempt, e.g. after a code change)."""
+    rerun = field(failed, "run_key").isin(set(field(runs[runs["status"] == "FINISHED"], "run_key").dropna()))
     for table in spec["tables"]:
-        if table["experiment"] != failed.experiment:
-            continue
         for row in table["rows"]:
-            chosen = used[table["name"]][row["label"]].get(seed)
-            if chosen is not None and _matches(failed, row.get("match", {})) and chosen.start_time > failed.start_time:
-                return True
-    return False
+            counted = used[(used["table"] == table["name"]) & (used["row"] == row["label"])]
+            mine = (failed["experiment"] == table["experiment"]) & _mask(failed, row.get("match"))
+            if counted.empty or not mine.any():
+                continue
+            newest = failed["seed"].map(counted.set_index("seed")["start_time"])  # NaT: no run of that seed
+            rerun |= mine & newest.notna() & (newest > failed["start_time"])
+    return rerun
+
+
+def _get(run: pd.Series, key: str) -> str | None:
+    """One run's tag ``demon_lab.<key>`` or else param ``key`` (None if neither)."""
+    for name in (f"tags.{TAG}{key}", f"params.{key}"):
+        value = run.get(name)
+        if isinstance(value, str):
+            return value
+    return None
 
 
 def _fmt(v: float, digits: int = 3) -> str:
@@ -237,23 +315,32 @@ def _fmt(v: float, digits: int = 3) -> str:
     return f"{v:.{digits}f}" if abs(v) < 1000 else f"{v:.0f}"
 
 
-def _describe(spec: Mapping[str, Any], runs: Sequence[Run], used: Mapping[str, Any]) -> dict[str, str]:
-    chosen = [r for per_row in used.values() for per_seed in per_row.values() for r in per_seed.values()]
-    values = lambda key: sorted({r.get(key) or "?" for r in chosen})  # noqa: E731
+def _describe(spec: Mapping[str, Any], used: pd.DataFrame) -> dict[str, Any]:
+    chosen = used.drop_duplicates("run_id")
+
+    def values(key: str) -> list[str]:
+        v = field(chosen, key)
+        return sorted(set(v.where(v.notna() & v.ne(""), "?")))
+
+    seeds = field(chosen, "seed")
     commands = [f"python -m demon_lab -m {' '.join(overrides)}" for overrides in spec.get("runs", [])]
     return {"scale": ", ".join(values("scale")) or "-", "data": ", ".join(values("data")) or "-",
-            "seeds": ", ".join(sorted({r.get("seed") or "0" for r in chosen}, key=int)) or "-",
-            "runs": str(len({r.run_id for r in chosen})), "commands": commands}
+            "seeds": ", ".join(sorted(set(seeds.where(seeds.notna() & seeds.ne(""), "0")), key=int)) or "-",
+            "runs": str(len(chosen)), "commands": commands}
 
 
-def _cell_text(cell, row_n: int, pm: str, fewer: str) -> str:
+def _cell_text(cell: Cell, row_n: int, pm: str, fewer: str) -> str:
     """Mean, ``pm`` and the CI half-width (with 2+ seeds), and ``fewer`` (a format with the cell's
     n) when fewer seeds than the row's logged a finite value here (say, no pixel of positive depth)."""
     text = _fmt(cell.mean) + (f"{pm}{_fmt(cell.ci95)}" if cell.n > 1 else "")
     return text + (fewer.format(cell.n) if 0 < cell.n < row_n else "")
 
 
-def write_markdown(spec, result, info, failed, paper_rows) -> str:
+def _row_cells(result, table, dataset, row) -> dict[str, Cell]:
+    return {c: cell(result, table["name"], dataset, row["label"], c) for c in table["columns"]}
+
+
+def write_markdown(spec, result, info, failed: pd.DataFrame, paper_rows) -> str:
     out = io.StringIO()
     w = out.write
     w(f"# {spec['title']}\n\n")
@@ -272,14 +359,13 @@ def write_markdown(spec, result, info, failed, paper_rows) -> str:
     for table in spec["tables"]:
         w(f"## {table['caption']}\n\n")
         for dataset, paper_dataset in spec["datasets"].items():
-            rows = result["cells"][table["name"]][dataset]
-            if not any(c.n for r in rows.values() for c in r.values()):
+            if not _has_values(result, table["name"], dataset):
                 continue
             w(f"### {dataset}" + (f" (paper: {paper_dataset})" if paper_dataset else "") + "\n\n")
-            header = ["row", "n", *[LABELS.get(c, c) for c in table["columns"]]]
+            header = ["row", "n", *[column(c).label for c in table["columns"]]]
             w("| " + " | ".join(header) + " |\n|" + "---|" * len(header) + "\n")
             for row in table["rows"]:
-                entry = rows[row["label"]]
+                entry = _row_cells(result, table, dataset, row)
                 n = max((c.n for c in entry.values()), default=0)
                 cells = [_cell_text(entry[c], n, " ± ", " (n = {})") for c in table["columns"]]
                 w(f"| {row['label']} | {n} | " + " | ".join(cells) + " |\n")
@@ -298,13 +384,14 @@ def write_markdown(spec, result, info, failed, paper_rows) -> str:
               f"out {len(lacking)} of the {result['counted']} counted runs, whose artifacts are not in this "
               f"store's artifact location: {', '.join(lacking)}.\n\n")
     w("## Runs not counted\n\n")
-    if not failed and not result["missing"] and not result.get("rerun") and not result.get("stale"):
+    if failed.empty and not result["missing"] and not result.get("rerun") and not result.get("stale"):
         w("None: every expected (row, seed) has a FINISHED run and no run failed.\n")
-    for r in failed:
-        what = ", ".join(f"{k}={r.get(k)}" for k in ("method", "oracle", "iterations")
-                         if r.get(k) not in (None, "None"))
-        w(f"- FAILED run {r.run_id} (experiment {r.experiment}, seed {r.get('seed')}, {what}): "
-          f"{r.tags.get(f'{TAG}error', 'no error recorded')[:300]}\n")
+    for _, r in failed.iterrows():
+        what = ", ".join(f"{k}={_get(r, k)}" for k in ("method", "oracle", "iterations")
+                         if _get(r, k) not in (None, "None"))
+        error = r.get(f"tags.{TAG}error")
+        w(f"- FAILED run {r['run_id']} (experiment {r['experiment']}, seed {_get(r, 'seed')}, {what}): "
+          f"{(error if isinstance(error, str) else 'no error recorded')[:300]}\n")
     for line in result["missing"]:
         w(f"- missing: {line}\n")
     if result.get("stale"):
@@ -324,35 +411,30 @@ def write_csv(spec, result, paper_rows) -> str:
         for dataset, paper_dataset in spec["datasets"].items():
             for row in table["rows"]:
                 paper = paper_cells(paper_rows, row.get("paper"), paper_dataset, table["columns"])
-                for c in table["columns"]:
-                    cell = result["cells"][table["name"]][dataset][row["label"]][c]
-                    writer.writerow([table["name"], dataset, row["label"], c, cell.mean, cell.std, cell.ci95, cell.n,
-                                     " ".join(f"{v:.6g}" for v in cell.values), paper.get(c, "")])
+                for c, cl in _row_cells(result, table, dataset, row).items():
+                    writer.writerow([table["name"], dataset, row["label"], c, cl.mean, cl.std, cl.ci95, cl.n,
+                                     " ".join(f"{v:.6g}" for v in cl.values), paper.get(c, "")])
     return out.getvalue()
 
 
 def write_tex(spec, result, info, paper_rows) -> str:
     esc = lambda s: str(s).replace("_", r"\_").replace("%", r"\%").replace("&", r"\&")  # noqa: E731
-    tex_label = {"l1_inv": "L1-inv", "sc_inv": "sc-inv", "l1_rel": "L1-rel", "delta_1.25": r"$\delta<1.25$",
-                 "delta_1.25_2": r"$\delta<1.25^2$", "delta_1.25_3": r"$\delta<1.25^3$", "rot_deg": "rot",
-                 "tran_deg": "tran", "epe": "EPE", "n_failed": "failed"}
     out = io.StringIO()
     w = out.write
     w(f"% {spec['title']}\n% generated by python -m demon_lab.report {spec['name']}; scale {info['scale']}, "
       f"seeds {info['seeds']}, {info['runs']} runs\n% needs \\usepackage{{booktabs}}\n")
     for table in spec["tables"]:
         for dataset, paper_dataset in spec["datasets"].items():
-            rows = result["cells"][table["name"]][dataset]
-            if not any(c.n for r in rows.values() for c in r.values()):
+            if not _has_values(result, table["name"], dataset):
                 continue
             cols = table["columns"]
             w("\\begin{table}[t]\\centering\\small\n")
             w(f"\\caption{{{esc(table['caption'])}; {esc(dataset)}, mean $\\pm$ 95\\% CI over seeds"
               f"{'; paper (' + esc(paper_dataset) + ') in italics' if paper_dataset else ''}.}}\n")
             w("\\begin{tabular}{l" + "r" * len(cols) + "}\\toprule\n")
-            w(" & ".join(["", *[tex_label.get(c, esc(c)) for c in cols]]) + " \\\\\\midrule\n")
+            w(" & ".join(["", *[column(c).tex for c in cols]]) + " \\\\\\midrule\n")
             for row in table["rows"]:
-                entry = rows[row["label"]]
+                entry = _row_cells(result, table, dataset, row)
                 n = max((entry[c].n for c in cols), default=0)
                 cells = [_cell_text(entry[c], n, " $\\pm$ ", " ($n={}$)") for c in cols]
                 w(" & ".join([esc(row["label"]), *cells]) + " \\\\\n")
@@ -366,13 +448,41 @@ def write_tex(spec, result, info, paper_rows) -> str:
 
 # ----------------------------------------------------------------------------- figures
 
+UNITS = {"l1_inv": "inverse depth, unit baseline", "sc_inv": "log depth, scale-invariant",
+         "l1_rel": "relative to true depth", "delta_1.25": "fraction of pixels", "delta_1.25_2": "fraction of pixels",
+         "delta_1.25_3": "fraction of pixels", "rot_deg": "°", "tran_deg": "°", "epe": "normalised flow units"}
+"""Axis units of the figures (metrics.COLUMNS names quantities, not their units; rot/tran labels carry °)."""
 
-def _per_sample_rows(run: Run) -> list[dict[str, str]]:
-    path = run.artifact("per_sample_metrics.csv")
+
+def _axis(key: str) -> str:
+    label, unit = column(key).label, UNITS.get(key)
+    return label if unit is None or unit in label else f"{label} ({unit})"
+
+
+def _artifact(run: Mapping[str, Any], path: str) -> Path | None:
+    """A run's artifact as a file here, or None. MLflow's artifact API answers by downloading (a
+    copy, or a transfer from a server); the figures only read artifacts already on this machine."""
+    from urllib.parse import unquote, urlparse
+
+    parsed = urlparse(str(run["artifact_uri"]))
+    root = Path(unquote(parsed.path)) if parsed.scheme in ("file", "") else None
+    target = root / path if root is not None else None
+    return target if target is not None and target.exists() else None
+
+
+def _per_sample_rows(run) -> list[dict[str, str]]:
+    path = _artifact(run, "per_sample_metrics.csv")
     if path is None:
         return []
     with open(path, newline="") as f:
         return list(csv.DictReader(f))
+
+
+def _counted(result: Mapping[str, Any], table: Mapping[str, Any]) -> Iterator[tuple[str, pd.DataFrame]]:
+    """(row label, its counted runs by seed) for each row of a table, in the table's order."""
+    used = result["used"]
+    for row in table["rows"]:
+        yield row["label"], used[(used["table"] == table["name"]) & (used["row"] == row["label"])]
 
 
 def _save(fig, out: Path) -> Path:
@@ -389,42 +499,38 @@ def figure_iterations(spec, result, paper_rows, path: Path) -> list[Path]:
 
     table = spec["tables"][0]
     columns = [c for c in ("l1_inv", "sc_inv", "l1_rel", "rot_deg", "tran_deg", "epe") if c in table["columns"]]
-    datasets = [d for d in spec["datasets"] if any(c.n for r in result["cells"][table["name"]][d].values()
-                                                   for c in r.values())]
+    datasets = [d for d in spec["datasets"] if _has_values(result, table["name"], d)]
     if not datasets or not columns:
         return []
-    fig, axes = plt.subplots(1, len(columns), figsize=(3.2 * len(columns), 3.0), squeeze=False)
+    fig, axes = plt.subplots(1, len(columns), figsize=(3.2 * len(columns), 3.3), squeeze=False)
     iterations = list(range(len(table["rows"])))
-    for ax, column in zip(axes[0], columns):
+    for ax, c in zip(axes[0], columns):
         for dataset in datasets:
-            rows = result["cells"][table["name"]][dataset]
-            means = [rows[r["label"]][column].mean for r in table["rows"]]
-            errs = [rows[r["label"]][column].ci95 for r in table["rows"]]
-            ax.errorbar(iterations, means, yerr=[0 if math.isnan(e) else e for e in errs], marker="o", ms=3,
-                        capsize=2, label=dataset[:24])
-        paper = [paper_cells(paper_rows, r.get("paper"), "SUN3D", [column]).get(column, math.nan)
-                 for r in table["rows"]]
+            cells = [cell(result, table["name"], dataset, r["label"], c) for r in table["rows"]]
+            ax.errorbar(iterations, [x.mean for x in cells], yerr=[0 if math.isnan(x.ci95) else x.ci95 for x in cells],
+                        marker="o", ms=3, capsize=2, label=dataset[:24])
+        paper = [paper_cells(paper_rows, r.get("paper"), "SUN3D", [c]).get(c, math.nan) for r in table["rows"]]
         if any(math.isfinite(p) for p in paper):
             ax.plot(iterations, paper, "k--", marker="s", ms=3, label="paper (SUN3D)")
-        ax.set_title(LABELS.get(column, column))
-        ax.set_xlabel("iteration")
+        ax.set_title(column(c).label)
+        ax.set_xlabel("iteration (pass of the iterative net)")
+        ax.set_ylabel(_axis(c), fontsize=8)
         ax.grid(alpha=0.3)
     axes[0][0].legend(fontsize=6)
+    fig.suptitle(f"{spec['title']}: error after each pass, mean ± 95 % CI over seeds per test set", fontsize=9)
     return [_save(fig, path / f"{spec['name']}_iterations.png")]
 
 
 def figure_pixel_histograms(spec, result, path: Path) -> list[Path]:
     import matplotlib.pyplot as plt
-    import numpy as np
 
     table = spec["tables"][0]
-    per_row = result["used"][table["name"]]
     outputs = []
     for dataset in spec["datasets"]:
         merged: dict[str, dict[str, Any]] = {}
-        for label, per_seed in per_row.items():
-            for run in per_seed.values():
-                artifact = run.artifact("pixel_errors.json")
+        for label, runs in _counted(result, table):
+            for _, run in runs.iterrows():
+                artifact = _artifact(run, "pixel_errors.json")
                 if artifact is None:
                     continue
                 hist = json.loads(artifact.read_text()).get(dataset)
@@ -439,7 +545,7 @@ def figure_pixel_histograms(spec, result, path: Path) -> list[Path]:
         if not merged:
             continue
         metrics = ["l1_inv", "l1_rel"]
-        fig, axes = plt.subplots(1, 2, figsize=(9, 3.2))
+        fig, axes = plt.subplots(1, 2, figsize=(9, 3.4))
         for ax, metric in zip(axes, metrics):
             for label, hists in merged.items():
                 h = hists[metric]
@@ -450,27 +556,30 @@ def figure_pixel_histograms(spec, result, path: Path) -> list[Path]:
                 below = total - h["counts"][-1]
                 ax.stairs(h["counts"] / total, edges,
                           label=f"{label}: mean {h['sum'] / total:.3f} ({h['below'] / max(below, 1):.3f})")
-            ax.set_title(f"{dataset}: per-pixel {LABELS[metric]} (last bin: above range)", fontsize=8)
+            ax.set_title(f"{dataset}: per-pixel {column(metric).label} (last bin: above range)", fontsize=8)
+            ax.set_xlabel(f"per-pixel {_axis(metric)}", fontsize=8)
             ax.set_ylabel("fraction of pixels")
             ax.legend(fontsize=6)
+        fig.suptitle(f"{spec['title']}: per-pixel depth errors on {dataset}, all counted runs "
+                     f"(legend: mean, and mean below the last bin)", fontsize=9)
         outputs.append(_save(fig, path / f"{spec['name']}_pixel_errors_{dataset}.png"))
     return outputs
 
 
 def figure_motion_distributions(spec, result, path: Path) -> list[Path]:
     import matplotlib.pyplot as plt
-    import numpy as np
 
     table = spec["tables"][0]
-    per_row = result["used"][table["name"]]
     outputs = []
     row_pass = {r["label"]: r.get("metrics", "") for r in table["rows"]}
-    tables = {run.run_id: _per_sample_rows(run) for per_seed in per_row.values() for run in per_seed.values()}
+    used = result["used"]
+    tables = {run["run_id"]: _per_sample_rows(run) for _, run in used.drop_duplicates("run_id").iterrows()}
+    titles = {"rot_deg": "rotation error", "tran_deg": "translation direction error"}
     for dataset in spec["datasets"]:
         values: dict[str, dict[str, list[float]]] = defaultdict(lambda: {"rot_deg": [], "tran_deg": []})
-        for label, per_seed in per_row.items():
-            for run in per_seed.values():
-                rows = [r for r in tables[run.run_id] if r.get("dataset") == dataset]
+        for label, runs in _counted(result, table):
+            for _, run in runs.iterrows():
+                rows = [r for r in tables[run["run_id"]] if r.get("dataset") == dataset]
                 wanted = row_pass[label].removeprefix("it") if row_pass[label].startswith("it") else None
                 if wanted is None:  # the summary: the refined depth's motion (last pass), or a baseline's
                     passes = {r["it"] for r in rows}
@@ -483,7 +592,7 @@ def figure_motion_distributions(spec, result, path: Path) -> list[Path]:
                                 values[label][k].append(float(r[k]))
         if not any(v["rot_deg"] for v in values.values()):
             continue
-        fig, axes = plt.subplots(1, 2, figsize=(9, 3.2))
+        fig, axes = plt.subplots(1, 2, figsize=(9, 3.4))
         for ax, metric, top in zip(axes, ("rot_deg", "tran_deg"), (20.0, 120.0)):
             edges = np.linspace(0, top, 31)
             for label, v in values.items():
@@ -491,9 +600,11 @@ def figure_motion_distributions(spec, result, path: Path) -> list[Path]:
                 if len(x):
                     ax.hist(x, bins=edges, histtype="step", density=False, weights=np.full(len(x), 1 / len(x)),
                             label=f"{label} (mean {np.mean(v[metric]):.1f}°, n={len(x)})")
-            ax.set_title(f"{dataset}: {LABELS[metric]} per sample (last bin: above range)", fontsize=8)
+            ax.set_title(f"{dataset}: {column(metric).label} per sample (last bin: above range)", fontsize=8)
+            ax.set_xlabel(f"{titles[metric]} (°)", fontsize=8)
             ax.set_ylabel("fraction of samples")
             ax.legend(fontsize=6)
+        fig.suptitle(f"{spec['title']}: per-sample motion errors on {dataset}, all counted runs", fontsize=9)
         outputs.append(_save(fig, path / f"{spec['name']}_motion_{dataset}.png"))
     return outputs
 
@@ -503,11 +614,11 @@ def figure_qualitative(spec, result, path: Path, per_row_limit: int = 1) -> list
     flow | normals) for every test set."""
     table = spec["tables"][0]
     outputs = []
-    for label, per_seed in result["used"][table["name"]].items():
-        if not per_seed:
+    for label, runs in _counted(result, table):
+        if runs.empty:
             continue
-        run = per_seed[min(per_seed)]
-        images = run.artifact("images")
+        run = runs.loc[runs["seed"].idxmin()]
+        images = _artifact(run, "images")
         if images is None:
             continue
         for dataset in spec["datasets"]:
@@ -521,25 +632,27 @@ def figure_qualitative(spec, result, path: Path, per_row_limit: int = 1) -> list
     return outputs
 
 
-def report(name: str, uri: str, out_dir: Path, directory: Path = ABLATIONS) -> dict[str, Path]:
+# ----------------------------------------------------------------------------- commands
+
+
+def report(name: str, uri: str, out_dir: Path, directory: Path = STUDIES) -> dict[str, Path]:
     """Writes the report of one spec; returns the written paths."""
+    directory = Path(directory)
     spec = load_spec(name, directory)
     experiments = sorted({t["experiment"] for t in spec["tables"]})
     current = version_tags()
-    runs, stale = [], []
-    for r in fetch_runs(uri, experiments):
-        (runs if all(r.tags.get(k) == v for k, v in current.items()) else stale).append(r)
+    everything = fetch_runs(uri, experiments)
+    same = current_versions(everything, current)
+    runs = everything[same]
     result = build(spec, runs)
-    result["stale"] = sum(r.status == "FINISHED" for r in stale)
+    result["stale"] = int((everything.loc[~same, "status"] == "FINISHED").sum())
     result["versions"] = ", ".join(f"{k.removeprefix(TAG)} {v}" for k, v in current.items())
     paper_rows = paper_numbers(directory / "paper_numbers.csv")
-    failed, result["rerun"] = [], 0
-    for r in (r for r in runs if r.status == "FAILED"):
-        if _superseded(r, spec, runs, result["used"]):
-            result["rerun"] += 1
-        else:
-            failed.append(r)
-    info = _describe(spec, runs, result["used"])
+    failed = runs[runs["status"] == "FAILED"]
+    superseded = _superseded(failed, spec, runs, result["used"])
+    result["rerun"] = int(superseded.sum())
+    failed = failed[~superseded]
+    info = _describe(spec, result["used"])
     out_dir.mkdir(parents=True, exist_ok=True)
     figures_dir = out_dir / "figures"
     figures_dir.mkdir(exist_ok=True)
@@ -559,9 +672,8 @@ def report(name: str, uri: str, out_dir: Path, directory: Path = ABLATIONS) -> d
         elif figure == "qualitative":
             figures += figure_qualitative(spec, result, figures_dir)
     result["figures"] = [str(p) for p in figures]
-    used = {r.run_id: r for per_row in result["used"].values() for per_seed in per_row.values()
-            for r in per_seed.values()}
-    result["without_artifacts"] = sorted(i for i, r in used.items() if r.artifact("") is None)
+    used = result["used"].drop_duplicates("run_id")
+    result["without_artifacts"] = sorted(r["run_id"] for _, r in used.iterrows() if _artifact(r, "") is None)
     result["counted"] = len(used)
     if result["without_artifacts"] and set(spec.get("figures", [])) - {"iterations"}:
         print(f"[demon_lab.report] {name}: {len(result['without_artifacts'])} of {len(used)} counted runs have no "
@@ -573,7 +685,20 @@ def report(name: str, uri: str, out_dir: Path, directory: Path = ABLATIONS) -> d
     return {**paths, **{p.name: p for p in figures}}
 
 
-def run_spec(name: str, directory: Path = ABLATIONS, extra: Sequence[str] = ()) -> int:
+def publish(study: str, uri: str, run_id: str, directory: Path = STUDIES) -> list[str]:
+    """Build ``study``'s report (md, csv, tex, figures) from the store at ``uri`` in a temporary
+    folder and log it as artifacts of the run ``run_id`` (a sweep's parent run) under ``report/``
+    (figures under ``report/figures/``); returns the artifact paths. Nothing is written to ./reports."""
+    from mlflow.tracking import MlflowClient
+
+    with tempfile.TemporaryDirectory(prefix=f"demon_lab_report_{study}_") as tmp:
+        root = Path(tmp)
+        paths = report(study, uri, root, directory)
+        MlflowClient(tracking_uri=uri).log_artifacts(run_id, str(root), artifact_path="report")
+        return [f"report/{p.relative_to(root).as_posix()}" for p in paths.values()]
+
+
+def run_spec(name: str, directory: Path = STUDIES, extra: Sequence[str] = ()) -> int:
     """Runs the spec's commands (finished jobs are skipped by run key); returns the worst exit code."""
     spec = load_spec(name, directory)
     worst = 0
@@ -586,22 +711,22 @@ def run_spec(name: str, directory: Path = ABLATIONS, extra: Sequence[str] = ()) 
 
 def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m demon_lab.report", description=__doc__.splitlines()[0])
-    parser.add_argument("names", nargs="*", help="ablation specs (ablations/NAME.yaml)")
-    parser.add_argument("--all", action="store_true", help="every spec in ablations/")
+    parser.add_argument("names", nargs="*", help="study specs (demon_lab/studies/NAME.yaml)")
+    parser.add_argument("--all", action="store_true", help="every study spec in demon_lab/studies/")
     parser.add_argument("--run", action="store_true", help="first run the spec's jobs that MLflow lacks")
     parser.add_argument("--tracking-uri", default=os.environ.get("MLFLOW_TRACKING_URI", "sqlite:///mlflow.db"))
     parser.add_argument("--out", type=Path, default=Path("reports"))
-    parser.add_argument("--ablations", type=Path, default=ABLATIONS, help=argparse.SUPPRESS)
+    parser.add_argument("--studies", type=Path, default=STUDIES, help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
-    names = sorted(p.stem for p in args.ablations.glob("*.yaml")) if args.all else list(args.names)
+    names = sorted(p.stem for p in args.studies.glob("*.yaml")) if args.all else list(args.names)
     if not names:
-        parser.error("name an ablation spec or pass --all")
+        parser.error("name a study spec or pass --all")
     status = 0
     for name in names:
         try:
             if args.run:
-                status = max(status, run_spec(name, args.ablations))
-            paths = report(name, args.tracking_uri, args.out, args.ablations)
+                status = max(status, run_spec(name, args.studies))
+            paths = report(name, args.tracking_uri, args.out, args.studies)
         except ReportError as e:
             print(f"error: {e}", file=sys.stderr)
             return 2

@@ -11,13 +11,14 @@ from collections.abc import Iterable, Mapping, Sequence
 from demon_lab.metrics import RESULT_COLUMNS, column
 
 
-def text_table(header: Sequence[str], rows: Iterable[Sequence[str]]) -> str:
-    """A terminal table: the first two columns (test set, pass) left-aligned, numbers right."""
+def text_table(header: Sequence[str], rows: Iterable[Sequence[str]], left: int = 2) -> str:
+    """A terminal table: the first ``left`` columns (names: test set, pass) left-aligned, the
+    numbers after them right-aligned."""
     rows = [list(r) for r in rows]
     widths = [max(len(r[i]) for r in [list(header), *rows]) for i in range(len(header))]
 
     def line(cells: Sequence[str]) -> str:
-        return "  ".join(c.rjust(w) if i > 1 else c.ljust(w) for i, (c, w) in enumerate(zip(cells, widths)))
+        return "  ".join(c.rjust(w) if i >= left else c.ljust(w) for i, (c, w) in enumerate(zip(cells, widths)))
 
     return "\n".join([line(header), "  ".join("-" * w for w in widths), *map(line, rows)])
 

@@ -4,10 +4,12 @@ from __future__ import annotations
 
 import csv
 import math
+import os
 import subprocess
 import sys
 from pathlib import Path
 
+import pandas as pd
 import pytest
 import yaml
 
@@ -18,10 +20,37 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def test_cell_statistics_by_hand():
-    cell = report.Cell([1.0, 2.0, 3.0])
-    assert cell.n == 3 and cell.mean == 2.0 and cell.std == 1.0
+    values = pd.DataFrame({"table": "t", "dataset": "d", "row": ["a", "a", "a", "b"], "column": "c",
+                           "seed": [2, 0, 1, 0], "value": [3.0, 1.0, 2.0, 5.0]})
+    result = {"cells": report.aggregate(values)}
+    cell = report.cell(result, "t", "d", "a", "c")
+    assert cell.n == 3 and cell.mean == 2.0 and cell.std == 1.0 and cell.values == (1.0, 2.0, 3.0)  # by seed
     assert cell.ci95 == pytest.approx(4.302653 / math.sqrt(3), rel=1e-6)  # t(0.975, 2) = 4.302653
-    assert math.isnan(report.Cell([5.0]).ci95) and math.isnan(report.Cell().mean)
+    one = report.cell(result, "t", "d", "b", "c")
+    assert one.n == 1 and one.mean == 5.0 and math.isnan(one.std) and math.isnan(one.ci95)
+    empty = report.cell(result, "t", "d", "no such row", "c")
+    assert empty.n == 0 and math.isnan(empty.mean) and empty.values == ()
+    assert type(cell.mean) is float and type(cell.n) is int  # what csv writes as 2.0 and 3
+
+
+def test_newest_finished_run_per_row_and_seed():
+    """Row selection by tag-or-param masks on search_runs' frame, the newest FINISHED run per seed."""
+    t = pd.Timestamp("2026-01-01", tz="UTC")
+    runs = pd.DataFrame({
+        "run_id": ["old", "new", "failed", "other", "param", "b"],
+        "experiment": ["e", "e", "e", "f", "e", "e"],
+        "status": ["FINISHED", "FINISHED", "FAILED", "FINISHED", "FINISHED", "FINISHED"],
+        "start_time": [t, t + pd.Timedelta(1, "s"), t + pd.Timedelta(2, "s"), t + pd.Timedelta(3, "s"),
+                       t, t],
+        f"tags.{TAG}row": ["a", "a", "a", "a", None, "b"],
+        "params.row": [None, None, None, None, "a", "b"],
+        "seed": [0, 0, 0, 0, 1, 0]})
+    spec = {"tables": [{"name": "t", "experiment": "e", "columns": [],
+                        "rows": [{"label": "A", "match": {"row": "a"}}, {"label": "B", "match": {"row": "b"}}]}]}
+    chosen = report.choose(spec, runs)
+    assert sorted(zip(chosen["row"], chosen["seed"], chosen["run_id"])) == [("A", 0, "new"), ("A", 1, "param"),
+                                                                           ("B", 0, "b")]
+    assert list(report.field(runs, "row")) == ["a", "a", "a", "a", "a", "b"]  # the tag, else the param
 
 
 def test_paper_numbers_merge_the_rows_of_one_cell():
@@ -37,7 +66,7 @@ def test_every_shipped_spec_loads_and_names_known_paper_rows():
     from demon_lab.__main__ import check
 
     rows = report.paper_numbers()
-    for path in sorted(report.ABLATIONS.glob("*.yaml")):
+    for path in sorted(report.STUDIES.glob("*.yaml")):
         spec = report.load_spec(path.stem)
         for overrides in spec["runs"]:  # every job of the spec's commands composes and validates
             assert check(["-m", *overrides]) is None, (path.stem, overrides)
@@ -90,7 +119,7 @@ def version_tags(**changed: str | None) -> dict[str, str]:
 
 
 def _spec(directory: Path, **extra) -> None:
-    (directory / "paper_numbers.csv").write_text((report.ABLATIONS / "paper_numbers.csv").read_text())
+    (directory / "paper_numbers.csv").write_text((report.STUDIES / "paper_numbers.csv").read_text())
     spec = {**extra, "title": "A study", "runs": [["+experiment=study"]], "seeds": [0, 1, 2],
             "datasets": {"setA": "SUN3D"},
             "tables": [{"name": "t", "caption": "cap", "experiment": "study", "columns": ["l1_inv", "tran_deg"],
@@ -155,7 +184,42 @@ def test_report_of_an_unknown_spec_is_one_line(tmp_path):
     result = subprocess.run([sys.executable, "-m", "demon_lab.report", "no_such_study"], cwd=tmp_path,
                             capture_output=True, text=True, timeout=120)
     assert result.returncode == 2
-    assert result.stderr.strip().startswith("error: ablation 'no_such_study'") and len(result.stderr.splitlines()) == 1
+    assert result.stderr.strip().startswith(
+        "error: study spec 'no_such_study': no demon_lab/studies/no_such_study.yaml; known: baselines, ")
+    assert len(result.stderr.splitlines()) == 1
+
+
+def test_an_experiment_reported_inside_another_study_names_it(capsys):
+    assert report.study_of("gt_depth_motion_oracle") == "gt_flow_oracle"  # a table of gt_flow_oracle's spec
+    assert report.study_of("gt_flow_oracle") == "gt_flow_oracle" and report.study_of("iterations") == "iterations"
+    assert report.study_of("no_such_experiment") is None
+    assert report.main(["gt_depth_motion_oracle"]) == 2
+    err = capsys.readouterr().err
+    assert err == ("error: gt_depth_motion_oracle is reported by the study gt_flow_oracle: "
+                   "python -m demon_lab.report gt_flow_oracle\n")
+
+
+def test_publish_logs_the_report_on_a_run_and_leaves_reports_alone(tmp_path, monkeypatch):
+    """What the sweep callback does at the end of a multirun: the study's report, built from the
+    store, becomes artifacts of the sweep's parent run under report/ (figures under report/figures/)."""
+    uri = _fake_store(tmp_path)
+    _spec(tmp_path, figures=["iterations", "qualitative"])
+    parent = Tracker(uri, "study", str(tmp_path / "artifacts")).start("sweep study", {f"{TAG}kind": "sweep"})
+    monkeypatch.chdir(tmp_path)
+    env = os.environ.get("MLFLOW_TRACKING_URI")
+    paths = report.publish("study", uri, parent, tmp_path)
+    assert paths == ["report/study.md", "report/study.csv", "report/study.tex", "report/figures/study_iterations.png"]
+    assert not (tmp_path / "reports").exists()
+    assert os.environ.get("MLFLOW_TRACKING_URI") == env  # the process's tracking URI is put back
+    from mlflow.tracking import MlflowClient
+
+    client = MlflowClient(tracking_uri=uri)
+    assert {a.path for a in client.list_artifacts(parent, "report")} == {
+        "report/study.md", "report/study.csv", "report/study.tex", "report/figures"}
+    assert [a.path for a in client.list_artifacts(parent, "report/figures")] == ["report/figures/study_iterations.png"]
+    md = Path(client.download_artifacts(parent, "report/study.md", str(tmp_path / "down"))).read_text()
+    direct = report.report("study", uri, tmp_path / "direct", tmp_path)["md"].read_text()
+    assert md == direct and "| row a | 3 | 2.000 ± 2.484 | 20.000 ± 24.841 |" in md
 
 
 def test_report_from_real_smoke_runs(tmp_path):

@@ -1,0 +1,65 @@
+"""The identity of runs, stages and sweeps lives in demon_lab.identity: the output-folder exclusions
+agree with the non-semantic keys, and keys do not depend on where the package is installed."""
+
+from __future__ import annotations
+
+from hydra import compose, initialize_config_dir
+from omegaconf import OmegaConf
+
+from demon_lab import config, identity, resources
+from demon_lab.stages.schedule import stage_dirs
+
+
+def _compose(*overrides: str, hydra: bool = False):
+    with initialize_config_dir(str(resources.CONF), version_base="1.3"):
+        return compose("config", overrides=list(overrides), return_hydra_config=hydra)
+
+
+def _leaf_keys(node, prefix: str = "") -> set[str]:
+    keys = set()
+    for key, value in node.items():
+        dotted = f"{prefix}{key}"
+        keys |= _leaf_keys(value, dotted + ".") if isinstance(value, dict) else {dotted}
+    return keys
+
+
+def test_output_folders_exclude_exactly_the_non_semantic_keys_a_user_can_set():
+    excluded = set(_compose(hydra=True).hydra.job.config.override_dirname.exclude_keys)
+    settable = set()
+    for tracking in ("sqlite", "local_server"):
+        plain = OmegaConf.to_container(_compose(f"tracking={tracking}"), resolve=False)
+        settable |= {k for k in _leaf_keys(plain) if not identity.is_semantic(k)}
+    # config groups (tracking=local_server); Hydra's own overrides never name an output folder
+    groups = {k for k in identity.NON_SEMANTIC if (resources.CONF / k).is_dir() and k != "hydra"}
+    assert excluded == settable | groups
+    assert "seed" not in excluded and identity.is_semantic("seed") and not identity.is_semantic("tracking.uri")
+
+
+def test_run_key_ignores_non_semantic_keys_and_follows_semantic_ones(tmp_path):
+    base = identity.run_key(_compose())
+    assert identity.run_key(_compose("threads=1", "force=true", f"cache_dir={tmp_path}", "eval.visualize=0",
+                                     f"tracking.uri=sqlite:///{tmp_path}/x.db", "tracking=local_server")) == base
+    assert identity.run_key(_compose("seed=1")) != base
+    assert identity.run_key(_compose("iterations=5")) != base
+
+
+def test_keys_do_not_depend_on_where_the_package_is_installed(monkeypatch, tmp_path):
+    cfg = _compose("data=pair_folder")  # trains on the bundled pair: its path is in the stage keys
+    assert str(resources.DATA) in OmegaConf.to_container(cfg.data, resolve=True)["path"]
+    run, stages = identity.run_key(cfg), [s.key for s in stage_dirs(cfg)]
+    elsewhere = tmp_path / "site-packages" / "demon_lab" / "data" / "real"
+    monkeypatch.setattr(resources, "DATA", elsewhere)
+    monkeypatch.setattr(config, "DATA", elsewhere)
+    moved = _compose("data=pair_folder")
+    assert str(elsewhere) in OmegaConf.to_container(moved.data, resolve=True)["path"]
+    assert identity.run_key(moved) == run and [s.key for s in stage_dirs(moved)] == stages
+    # ... while a user's own folder is part of the key
+    other = _compose("data=pair_folder", f"data.path={tmp_path}")
+    assert identity.run_key(other) != run
+
+
+def test_sweep_key_drops_non_semantic_overrides_and_keeps_their_order_irrelevant():
+    key = identity.sweep_key("study", ["seed=0,1", "+experiment=study"])
+    assert identity.sweep_key("study", ["+experiment=study", "threads=1", "seed=0,1",
+                                        "hydra/launcher=joblib".replace("hydra/", "hydra.")]) == key
+    assert identity.sweep_key("other", ["seed=0,1", "+experiment=study"]) != key
