@@ -105,10 +105,11 @@ class MultirunTracking(Callback):
         none. A report that cannot be built is a warning: the sweep's own result stands."""
         from demon_lab import report
 
-        study = report.study_of(str(config.experiment))
-        if study is None:
-            return
+        study = None
         try:
+            study = report.study_of(str(config.experiment))
+            if study is None:
+                return
             paths = report.publish(study, self.tracker.uri, self.parent)
         except Exception as e:  # the jobs' runs are recorded either way
             log.warning("study %s: no report on the sweep run (%s: %s)", study, type(e).__name__, e)
