@@ -16,6 +16,7 @@ The default store is ``sqlite:///mlflow.db`` in the working directory with artif
 from __future__ import annotations
 
 import contextlib
+import logging
 import os
 import re
 import subprocess
@@ -27,6 +28,7 @@ from typing import Any
 from demon_lab.filelock import file_lock
 
 TAG = "demon_lab."
+log = logging.getLogger(__name__)
 
 
 def metric_name(key: str) -> str:
@@ -312,8 +314,7 @@ class LocalServer:
             raise TrackingError(f"tracking=local_server: the MLflow server did not answer on {self.uri} "
                                 f"within {self.startup_timeout:.0f} s")
         os.environ[self.ENV] = self.uri
-        print(f"[demon_lab] MLflow server on {self.uri} (store {self.store}); it stops with this command",
-              flush=True)
+        log.info("MLflow server on %s (store %s); it stops with this command", self.uri, self.store)
 
     def stop(self) -> None:
         import signal

@@ -1,6 +1,12 @@
 """Configuration checks before any work: a wrong type or an out-of-range value, or a file the job
 would read that is not there, is one line naming the key and what is allowed (raised as
-:class:`demon_lab.config.ConfigError`)."""
+:class:`demon_lab.config.ConfigError`).
+
+Written out rather than as Hydra structured configs: those check a value's type, but not its range
+(a positive step count, an odd window), rules across keys (``iterations > 0`` needs the iterative
+stages; a batch must split over the DDP processes) or the existence of files, and their errors
+span several lines with the config's full key path and object type.
+"""
 
 from __future__ import annotations
 
