@@ -90,5 +90,5 @@ def test_summary_and_table(batch):
     results = {"scripted": summarize(diagnose_batch(ScriptedChain(batch), batch, iterations=1))}
     assert results["scripted"][0]["pairs"] == 3 and math.isnan(results["scripted"][0]["prior"])
     table = format_table(results).splitlines()
-    assert table[0].split()[:4] == ["test", "set", "pass", "epe"] and len(table) == 4
+    assert table[0].split()[:4] == ["test", "set", "pass", "EPE"] and len(table) == 4
     assert table[2].split()[:3] == ["scripted", "0", "0.000"]

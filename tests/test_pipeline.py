@@ -161,15 +161,17 @@ def test_a_job_that_raises_leaves_its_run_failed(tmp_path):
     from demon_lab.data.sample import DataError
     from demon_lab.job import run
 
-    cfg = compose_config(smoke_overrides(tmp_path, "data.real_pair=/does/not/exist"))
-    with pytest.raises(DataError, match="/does/not/exist"):
+    unreadable = tmp_path / "not_a_pair"  # exists (validation passes), holds no pair: the evaluation raises
+    unreadable.mkdir()
+    cfg = compose_config(smoke_overrides(tmp_path, f"data.real_pair={unreadable}"))
+    with pytest.raises(DataError, match="not_a_pair"):
         run(cfg)
     c = client(tmp_path)
     runs = c.search_runs([c.get_experiment_by_name("default").experiment_id],
                          filter_string="tags.`demon_lab.scale` = 'smoke'")
     job = [r for r in runs if "mlflow.parentRunId" not in r.data.tags]
     assert len(job) == 1 and job[0].info.status == "FAILED"
-    assert "/does/not/exist" in job[0].data.tags["demon_lab.error"]
+    assert "not_a_pair" in job[0].data.tags["demon_lab.error"]
     assert all(r.info.status != "RUNNING" for r in runs)
 
 
@@ -189,6 +191,9 @@ def test_a_job_that_raises_leaves_its_run_failed(tmp_path):
     (["schedule.stages.flow1.sig_start=1.5"],
      "schedule.stages.flow1.sig_start: expected a fraction of the stage in [0, 1] (1: never)"),
     (["schedule.stages.flow1.warmup_steps=-5"], "schedule.stages.flow1.warmup_steps: expected an integer >= 0"),
+    (["data.real_pair=/does/not/exist"], "data.test[3].path (data.real_pair): /does/not/exist: no such file"),
+    (["data=pair_folder", "data.path=/no/pairs"], "data.test[0].path (data.path): /no/pairs: no such file"),
+    (["data=tum", "data.root=/no/tum"], "data.test[0].root (data.root): /no/tum: no such file or directory"),
 ])
 def test_bad_configuration_is_one_line_before_any_work(args, message, tmp_path):
     result = cli(*smoke_overrides(tmp_path), *args, cwd=tmp_path)
