@@ -2,27 +2,49 @@
 
 Serves the tracking store with MLflow's own UI on 127.0.0.1 and prints, per experiment, the link to
 its runs in the machine-learning view (MLflow 3 opens in its GenAI view, which hides training
-runs). With ``--screenshot PNG`` it instead loads an experiment's runs page once in headless
-Chromium, saves what a user would see, and stops the server::
+runs), showing the job runs (not the sweeps' parent runs nor the stage runs) with the key test
+metrics as columns (``--columns``), and the link to the study report that a sweep logged on its
+parent run (``report/``, see ``python -m demon_lab.report``). With ``--screenshot PNG`` it instead
+loads that runs view once in headless Chromium, saves what a user would see, and stops the server::
 
     python -m demon_lab.dashboard                               # serve until Ctrl-C
     python -m demon_lab.dashboard --experiment iterations --screenshot docs/dashboard.png
+
+How MLflow 3.17's UI is told what to show (its source, ``mlflow/server/js/src/experiment-tracking/``):
+
+- columns and the run filter: a *shared view*, the UI's "share view" feature: the experiment tag
+  ``mlflow.sharedViewState.<key>`` holds the view state as JSON (search facets such as
+  ``searchFilter``, UI state such as ``selectedColumns``) and the URL parameter
+  ``viewStateShareKey=<key>`` applies it (``hooks/useSharedExperimentViewState.ts``,
+  ``models/ExperimentPageUIState.tsx``; column keys are ``metrics.`NAME```). The dashboard writes
+  that tag into each experiment it links (the same key for the same view, so it is written once).
+- the assistant side panel: on a local server the UI opens it on the first visit, remembered in the
+  browser's local storage (``mlflow.assistant.fab.autoOpenedOnFirstLoad_v1``, and
+  ``mlflow.assistant.panelOpen_v1`` while it is open). A URL cannot set those, so the screenshot
+  drives Chromium through its DevTools protocol (``--remote-debugging-pipe``: no port, no extra
+  package) and stores both before the page's scripts run. In a browser of one's own, closing the
+  panel once is remembered the same way.
 """
 
 from __future__ import annotations
 
 import argparse
+import base64
 import contextlib
+import hashlib
 import json
 import os
+import select
 import shutil
 import subprocess
 import sys
 import tempfile
 import time
+import urllib.parse
 import urllib.request
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
+from typing import Any
 
 from demon_lab.tracking import LocalServer, TrackingError
 
@@ -31,15 +53,78 @@ BROWSERS = ("chromium", "chromium-browser", "google-chrome", "google-chrome-stab
 # that reaches the network besides the page itself.
 BROWSER_FLAGS = ("--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
                  "--disable-background-networking", "--disable-component-update", "--disable-sync")
+KEY_METRICS = ("test/synthetic_sun3d/l1_inv", "test/synthetic_sun3d/rot_deg", "test/synthetic_sun3d/tran_deg",
+               "test/synthetic_sun3d/epe")
+"""The default ``--columns``: the summary test metrics of the first synthetic test set."""
+JOBS_FILTER = "tags.`demon_lab.run_key` LIKE '%'"
+"""MLflow search syntax for the job runs: the sweeps' parent runs and the stage runs have no run key."""
+SHARED_VIEW_TAG = "mlflow.sharedViewState."
+"""MLflow UI's EXPERIMENT_PAGE_VIEW_STATE_SHARE_TAG_PREFIX (experiment-tracking/constants.ts)."""
+ASSISTANT_CLOSED = {"mlflow.assistant.fab.autoOpenedOnFirstLoad_v1": "true", "mlflow.assistant.panelOpen_v1": "false"}
+"""Local storage of MLflow's UI (its useLocalStorage hook stores KEY_v<version> as JSON): the assistant panel
+was opened once already (so it is not opened on this first visit) and is closed."""
 
 
-def runs_url(server: str, experiment_id: str) -> str:
-    """The runs table of an experiment, in the machine-learning view."""
-    return f"{server.rstrip('/')}/#/experiments/{experiment_id}/runs?workflowType=machine_learning"
+def runs_url(server: str, experiment_id: str, view: str | None = None) -> str:
+    """The runs table of an experiment, in the machine-learning view (with a shared view's key:
+    that view's columns and filter, see :func:`share_view`)."""
+    query = {**({"viewStateShareKey": view} if view else {}), "workflowType": "machine_learning"}
+    return f"{server.rstrip('/')}/#/experiments/{experiment_id}/runs?{urllib.parse.urlencode(query)}"
 
 
-def run_url(server: str, experiment_id: str, run_id: str) -> str:
-    return f"{server.rstrip('/')}/#/experiments/{experiment_id}/runs/{run_id}?workflowType=machine_learning"
+def run_url(server: str, experiment_id: str, run_id: str, artifact: str | None = None) -> str:
+    """A run's page (with ``artifact``, its artifacts tab showing that file)."""
+    tab = f"/artifacts/{artifact}" if artifact else ""
+    return f"{server.rstrip('/')}/#/experiments/{experiment_id}/runs/{run_id}{tab}?workflowType=machine_learning"
+
+
+def column_key(name: str) -> str:
+    """The UI's key of a runs-table column: ``metrics.`NAME```; ``params.NAME`` and ``tags.NAME``
+    name a param or tag column, ``metrics.NAME`` a metric spelled with its prefix."""
+    kind, _, rest = name.partition(".")
+    if kind in ("metrics", "params", "tags", "attributes") and rest:
+        return f"{kind}.`{rest.strip('`')}`"
+    return f"metrics.`{name}`"
+
+
+def view_state(columns: Sequence[str], search_filter: str = JOBS_FILTER) -> dict[str, Any]:
+    """A shared view of the runs table: the runs matching ``search_filter`` with these columns
+    (wide enough for their names), sorted by the first metric column, lowest first. Sorted by
+    anything but the start time, the UI lists the matching runs themselves, not nested under
+    their parent runs (it fetches missing parents only for that order)."""
+    keys = [column_key(c) for c in columns]
+    state: dict[str, Any] = {"searchFilter": search_filter, "selectedColumns": keys, "columnOrder": keys,
+                             "columnWidths": {k: 7 * len(c) + 44 for k, c in zip(keys, columns)}}
+    metric = next((k for k in keys if k.startswith("metrics.")), None)
+    if metric is not None:
+        state |= {"orderByKey": metric, "orderByAsc": True}
+    return state
+
+
+def share_view(server: str, experiment_id: str, state: Mapping[str, Any]) -> str:
+    """Stores ``state`` as a shared view of the experiment (the experiment tag the UI's "share view"
+    writes) and returns its key for :func:`runs_url`; the key is a hash of the state, so the same
+    view is the same tag."""
+    text = json.dumps(state, sort_keys=True)
+    key = "demon_lab-" + hashlib.sha256(text.encode()).hexdigest()[:12]
+    api(server, "experiments/set-experiment-tag", {"experiment_id": experiment_id, "key": SHARED_VIEW_TAG + key,
+                                                   "value": text})
+    return key
+
+
+def study_report(server: str, experiment_id: str) -> tuple[str, str] | None:
+    """(run id, artifact path) of the study report (``report/NAME.md``) on the experiment's newest
+    sweep parent run that has one, or None."""
+    found = api(server, "runs/search", {"experiment_ids": [experiment_id], "max_results": 50,
+                                        "filter": "tags.`demon_lab.kind` = 'sweep'",
+                                        "order_by": ["attributes.start_time DESC"]}).get("runs", [])
+    for run in found:
+        run_id = run["info"]["run_id"]
+        files = api(server, f"artifacts/list?{urllib.parse.urlencode({'run_id': run_id, 'path': 'report'})}")
+        reports = sorted(f["path"] for f in files.get("files", []) if f["path"].endswith(".md"))
+        if reports:
+            return run_id, reports[0]
+    return None
 
 
 def find_browser() -> str | None:
@@ -50,24 +135,131 @@ def find_browser() -> str | None:
     return None
 
 
+class DevTools:
+    """Chromium driven through its DevTools protocol over ``--remote-debugging-pipe``: commands go
+    to the browser's fd 3 and replies come from its fd 4, JSON messages ending in NUL (no port, no
+    websocket client needed)."""
+
+    def __init__(self, browser: str, flags: Sequence[str]):
+        commands, self._to_browser = os.pipe()
+        self._from_browser, replies = os.pipe()
+        self._log = tempfile.TemporaryFile()
+        self.name = Path(browser).name
+        # the shell puts the pipe's ends on the fds 3 and 4 Chromium expects
+        self.process = subprocess.Popen(["sh", "-c", f'exec "$0" "$@" 3<&{commands} 4>&{replies}', browser, *flags,
+                                         "--remote-debugging-pipe"], pass_fds=(commands, replies),
+                                        stdin=subprocess.DEVNULL, stdout=self._log, stderr=self._log)
+        os.close(commands)
+        os.close(replies)
+        self._buffer, self._id = b"", 0
+        self.events: list[dict[str, Any]] = []
+
+    def send(self, method: str, params: Mapping[str, Any] | None = None, session: str | None = None,
+             timeout: float = 60.0) -> dict[str, Any]:
+        self._id += 1
+        message = {"id": self._id, "method": method, "params": dict(params or {}),
+                   **({"sessionId": session} if session else {})}
+        data = json.dumps(message).encode() + b"\0"
+        while data:
+            data = data[os.write(self._to_browser, data):]
+        deadline = time.monotonic() + timeout
+        while True:
+            reply = self._read(deadline, method)
+            if reply.get("id") == self._id:
+                if "error" in reply:
+                    raise TrackingError(f"{self.name}: {method}: {reply['error'].get('message', reply['error'])}")
+                return reply.get("result", {})
+            self.events.append(reply)
+
+    def _read(self, deadline: float, method: str) -> dict[str, Any]:
+        while b"\0" not in self._buffer:
+            left = deadline - time.monotonic()
+            if left <= 0:
+                raise TrackingError(f"{self.name}: no answer to {method} within the time limit")
+            if select.select([self._from_browser], [], [], left)[0]:
+                chunk = os.read(self._from_browser, 1 << 20)
+                if not chunk:
+                    raise TrackingError(f"{self.name} exited {self.process.poll()}: {self.log()[-300:]}")
+                self._buffer += chunk
+        line, self._buffer = self._buffer.split(b"\0", 1)
+        return json.loads(line)
+
+    def evaluate(self, expression: str, session: str) -> Any:
+        result = self.send("Runtime.evaluate", {"expression": expression, "returnByValue": True}, session)
+        return result.get("result", {}).get("value")
+
+    def log(self) -> str:
+        self._log.seek(0)
+        return self._log.read().decode(errors="replace").strip()
+
+    def close(self) -> None:
+        with contextlib.suppress(TrackingError, OSError):
+            self.send("Browser.close", timeout=10)
+        try:
+            self.process.wait(timeout=20)
+        except subprocess.TimeoutExpired:
+            self.process.kill()
+            self.process.wait()
+        for fd in (self._to_browser, self._from_browser):
+            with contextlib.suppress(OSError):
+                os.close(fd)
+        self._log.close()
+
+
+def _storage_script(storage: Mapping[str, str]) -> str:
+    """JavaScript that puts ``storage`` into the page's local storage (pages without one: skipped)."""
+    sets = "".join(f"localStorage.setItem({json.dumps(k)}, {json.dumps(v)});" for k, v in storage.items())
+    return f"try {{ {sets} }} catch (e) {{}}"
+
+
 def capture(url: str, screenshot: Path | None = None, window: tuple[int, int] = (1600, 900),
-            budget_ms: int = 15000, browser: str | None = None) -> str:
-    """Load ``url`` in headless Chromium, let its scripts run for ``budget_ms`` of virtual time,
-    and return the rendered DOM; with ``screenshot``, also save a PNG of the window."""
+            budget_ms: int = 30000, browser: str | None = None, storage: Mapping[str, str] | None = None,
+            until: str | None = None) -> str:
+    """Load ``url`` in headless Chromium with ``storage`` in its local storage before the page's
+    scripts run (default: MLflow's assistant panel closed), wait until the JavaScript condition
+    ``until`` holds (if given) and the page has stopped changing (at most ``budget_ms``), and
+    return the rendered DOM; with ``screenshot``, also save a PNG of the window."""
     browser = browser or find_browser()
     if browser is None:
         raise TrackingError(f"no Chromium browser found (looked for {', '.join(BROWSERS)}); install Debian's "
                             f"'chromium' or set DEMON_LAB_BROWSER")
+    storage = ASSISTANT_CLOSED if storage is None else storage
     with tempfile.TemporaryDirectory(prefix="demon_lab_browser_") as profile:
-        command = [browser, *BROWSER_FLAGS, f"--user-data-dir={profile}", f"--window-size={window[0]},{window[1]}",
-                   f"--virtual-time-budget={budget_ms}", "--dump-dom"]
-        if screenshot is not None:
-            screenshot.parent.mkdir(parents=True, exist_ok=True)
-            command.append(f"--screenshot={screenshot.resolve()}")
-        done = subprocess.run([*command, url], capture_output=True, text=True, timeout=120)
-    if done.returncode != 0:
-        raise TrackingError(f"{Path(browser).name} exited {done.returncode}: {done.stderr.strip()[-300:]}")
-    return done.stdout
+        tools = DevTools(browser, [*BROWSER_FLAGS, f"--user-data-dir={profile}",
+                                   f"--window-size={window[0]},{window[1]}", "about:blank"])
+        try:
+            target = tools.send("Target.createTarget", {"url": "about:blank"})["targetId"]
+            session = tools.send("Target.attachToTarget", {"targetId": target, "flatten": True})["sessionId"]
+            tools.send("Emulation.setDeviceMetricsOverride", {"width": window[0], "height": window[1],
+                                                              "deviceScaleFactor": 1, "mobile": False}, session)
+            if storage:
+                tools.send("Page.addScriptToEvaluateOnNewDocument", {"source": _storage_script(storage)}, session)
+            tools.send("Page.navigate", {"url": url}, session)
+            _settle(tools, session, budget_ms / 1000, until)
+            dom = tools.evaluate("document.documentElement.outerHTML", session) or ""
+            if screenshot is not None:
+                screenshot.parent.mkdir(parents=True, exist_ok=True)
+                shot = tools.send("Page.captureScreenshot", {"format": "png"}, session)
+                screenshot.write_bytes(base64.b64decode(shot["data"]))
+        finally:
+            tools.close()
+    return dom
+
+
+def _settle(tools: DevTools, session: str, budget_s: float, until: str | None, quiet_s: float = 1.5) -> None:
+    """Wait (at most ``budget_s``) until the page has loaded, ``until`` holds and its DOM has not
+    changed for ``quiet_s`` (MLflow's pages render after their API calls return)."""
+    probe = f"[document.readyState, document.documentElement.outerHTML.length, Boolean({until or 'true'})]"
+    deadline = time.monotonic() + budget_s
+    last, since = None, time.monotonic()
+    while time.monotonic() < deadline:
+        state, size, ready = tools.evaluate(probe, session) or ("loading", 0, False)
+        now = time.monotonic()
+        if (state, size, ready) != last:
+            last, since = (state, size, ready), now
+        elif state == "complete" and ready and now - since >= quiet_s:
+            return
+        time.sleep(0.25)
 
 
 def api(server: str, endpoint: str, body: dict | None = None) -> dict:

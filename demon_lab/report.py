@@ -238,7 +238,9 @@ def aggregate(values: pd.DataFrame, by: Sequence[str] = CELL_KEYS) -> pd.DataFra
     from scipy.stats import t
 
     ordered = values.sort_values("seed", kind="stable") if "seed" in values.columns else values
-    cells = ordered.groupby(list(by))["value"].agg(mean="mean", std="std", n="count", values=list)
+    # Series.mean/std (numpy's sums, two-pass variance) rather than the groupby's own "mean"/"std",
+    # whose compensated sums and running variance change the CSV's numbers in their last digit.
+    cells = ordered.groupby(list(by))["value"].agg(mean=pd.Series.mean, std=pd.Series.std, n="count", values=list)
     n = cells["n"]
     cells["ci95"] = t.ppf(0.975, (n - 1).where(n > 1)) * cells["std"] / np.sqrt(n)
     return cells
@@ -450,13 +452,15 @@ def write_tex(spec, result, info, paper_rows) -> str:
 
 UNITS = {"l1_inv": "inverse depth, unit baseline", "sc_inv": "log depth, scale-invariant",
          "l1_rel": "relative to true depth", "delta_1.25": "fraction of pixels", "delta_1.25_2": "fraction of pixels",
-         "delta_1.25_3": "fraction of pixels", "rot_deg": "°", "tran_deg": "°", "epe": "normalised flow units"}
-"""Axis units of the figures (metrics.COLUMNS names quantities, not their units; rot/tran labels carry °)."""
+         "delta_1.25_3": "fraction of pixels", "epe": "normalised flow units"}
+"""What the figures' axes add to ``metrics.column(key).label``: its unit (the table names quantities only)."""
+MOTION_AXES = {"rot_deg": "rotation error (°)", "tran_deg": "translation direction error (°)"}
 
 
 def _axis(key: str) -> str:
-    label, unit = column(key).label, UNITS.get(key)
-    return label if unit is None or unit in label else f"{label} ({unit})"
+    if key in MOTION_AXES:
+        return MOTION_AXES[key]
+    return f"{column(key).label} ({UNITS[key]})" if key in UNITS else column(key).label
 
 
 def _artifact(run: Mapping[str, Any], path: str) -> Path | None:
@@ -514,6 +518,7 @@ def figure_iterations(spec, result, paper_rows, path: Path) -> list[Path]:
             ax.plot(iterations, paper, "k--", marker="s", ms=3, label="paper (SUN3D)")
         ax.set_title(column(c).label)
         ax.set_xlabel("iteration (pass of the iterative net)")
+        ax.set_xticks(iterations)
         ax.set_ylabel(_axis(c), fontsize=8)
         ax.grid(alpha=0.3)
     axes[0][0].legend(fontsize=6)
@@ -574,7 +579,6 @@ def figure_motion_distributions(spec, result, path: Path) -> list[Path]:
     row_pass = {r["label"]: r.get("metrics", "") for r in table["rows"]}
     used = result["used"]
     tables = {run["run_id"]: _per_sample_rows(run) for _, run in used.drop_duplicates("run_id").iterrows()}
-    titles = {"rot_deg": "rotation error", "tran_deg": "translation direction error"}
     for dataset in spec["datasets"]:
         values: dict[str, dict[str, list[float]]] = defaultdict(lambda: {"rot_deg": [], "tran_deg": []})
         for label, runs in _counted(result, table):
@@ -601,7 +605,7 @@ def figure_motion_distributions(spec, result, path: Path) -> list[Path]:
                     ax.hist(x, bins=edges, histtype="step", density=False, weights=np.full(len(x), 1 / len(x)),
                             label=f"{label} (mean {np.mean(v[metric]):.1f}°, n={len(x)})")
             ax.set_title(f"{dataset}: {column(metric).label} per sample (last bin: above range)", fontsize=8)
-            ax.set_xlabel(f"{titles[metric]} (°)", fontsize=8)
+            ax.set_xlabel(_axis(metric), fontsize=8)
             ax.set_ylabel("fraction of samples")
             ax.legend(fontsize=6)
         fig.suptitle(f"{spec['title']}: per-sample motion errors on {dataset}, all counted runs", fontsize=9)
