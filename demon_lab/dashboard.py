@@ -232,6 +232,7 @@ def capture(url: str, screenshot: Path | None = None, window: tuple[int, int] = 
             session = tools.send("Target.attachToTarget", {"targetId": target, "flatten": True})["sessionId"]
             tools.send("Emulation.setDeviceMetricsOverride", {"width": window[0], "height": window[1],
                                                               "deviceScaleFactor": 1, "mobile": False}, session)
+            tools.send("Page.enable", session=session)  # (scripts for new documents need the Page domain)
             if storage:
                 tools.send("Page.addScriptToEvaluateOnNewDocument", {"source": _storage_script(storage)}, session)
             tools.send("Page.navigate", {"url": url}, session)
@@ -288,6 +289,11 @@ def serve(uri: str, port: int, artifacts: Path) -> Iterator[str]:
         server.stop()
 
 
+RUNS_RENDERED = ("Boolean(document.querySelector('.ag-center-cols-container .ag-row')"
+                 " || document.body.innerText.includes('No runs'))")
+"""JavaScript: the runs table has drawn its rows (or said it has none)."""
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m demon_lab.dashboard", description=__doc__.splitlines()[0])
     parser.add_argument("--tracking-uri", default=os.environ.get("MLFLOW_TRACKING_URI", "sqlite:///mlflow.db"),
@@ -296,6 +302,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--artifacts", type=Path, default=Path("mlartifacts"),
                         help="where runs of experiments created through this server keep artifacts")
     parser.add_argument("--experiment", help="the experiment whose runs to show (default: the first with runs)")
+    parser.add_argument("--columns", default=",".join(KEY_METRICS),
+                        help="comma-separated metrics shown as columns of the job runs (params.NAME, tags.NAME: "
+                             "a param or tag; '': MLflow's own columns of every run); default: %(default)s")
     parser.add_argument("--screenshot", type=Path, help="save the runs page as PNG and exit")
     args = parser.parse_args(argv)
     if not args.tracking_uri.startswith("sqlite:///"):
@@ -306,20 +315,29 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"error: --tracking-uri {args.tracking_uri!r}: no such store (run python -m demon_lab first)",
               file=sys.stderr)
         return 2
+    columns = [c.strip() for c in args.columns.split(",") if c.strip()]
     try:
         with serve(args.tracking_uri, args.port, args.artifacts) as server:
             ids = experiments(server)
             if args.experiment is not None and args.experiment not in ids:
                 raise TrackingError(f"--experiment {args.experiment!r}: not in the store (it has: "
                                     f"{', '.join(sorted(ids))})")
+
+            def link(experiment_id: str) -> str:
+                view = share_view(server, experiment_id, view_state(columns)) if columns else None
+                return runs_url(server, experiment_id, view)
+
             if args.screenshot is not None:
                 name = args.experiment or next(iter(sorted(ids, key=lambda n: n == "Default")))
-                capture(runs_url(server, ids[name]), args.screenshot)
+                capture(link(ids[name]), args.screenshot, until=RUNS_RENDERED)
                 print(f"[demon_lab.dashboard] {name}: {args.screenshot}", flush=True)
                 return 0
             for name, experiment_id in sorted(ids.items(), key=lambda kv: int(kv[1])):
                 if args.experiment in (None, name):
-                    print(f"  {name:<24} {runs_url(server, experiment_id)}", flush=True)
+                    print(f"  {name:<24} {link(experiment_id)}", flush=True)
+                    found = study_report(server, experiment_id)
+                    if found is not None:
+                        print(f"  {'':<24} study report: {run_url(server, experiment_id, *found)}", flush=True)
             print("[demon_lab.dashboard] serving; Ctrl-C stops it", flush=True)
             while True:
                 time.sleep(3600)
