@@ -40,6 +40,7 @@ import subprocess
 import sys
 import tempfile
 import time
+import urllib.error
 import urllib.parse
 import urllib.request
 from collections.abc import Iterator, Mapping, Sequence
@@ -268,8 +269,14 @@ def api(server: str, endpoint: str, body: dict | None = None) -> dict:
     data = None if body is None else json.dumps(body).encode()
     request = urllib.request.Request(f"{server.rstrip('/')}/ajax-api/2.0/mlflow/{endpoint}", data=data,
                                      headers={"Content-Type": "application/json"})
-    with urllib.request.urlopen(request, timeout=30) as response:
-        return json.load(response)
+    try:
+        with urllib.request.urlopen(request, timeout=30) as response:
+            return json.load(response)
+    except urllib.error.HTTPError as e:
+        detail = e.read().decode(errors="replace")[:200]
+        raise TrackingError(f"{server}: {endpoint}: HTTP {e.code} {detail}") from None
+    except (urllib.error.URLError, OSError) as e:
+        raise TrackingError(f"{server}: {endpoint}: {getattr(e, 'reason', e)}") from None
 
 
 def experiments(server: str) -> dict[str, str]:

@@ -15,12 +15,13 @@ from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 
+from demon_lab.baselines.methods import METHODS as BASELINES
 from demon_lab.config import ConfigError
 from demon_lab.losses import check_weights
 from demon_lab.nets.chain import ORACLES
 from demon_lab.stages.base import LR_SCHEDULES
+from demon_lab.stages.modules import STAGE_KINDS
 
-STAGE_KINDS = ("flow", "depth_motion", "iterative", "refine")
 STAGE_ORACLES = {"flow": (None, "depth_motion"), "depth_motion": (None, "flow"), "iterative": (None,),
                  "refine": (None,)}
 
@@ -72,7 +73,7 @@ def check_paths(cfg: DictConfig) -> None:
 
 
 TRACKING_SCHEMES = ("sqlite", "http", "https", "postgresql", "mysql", "mssql", "file", "databricks")
-METHODS = ("demon", "base_ff", "base_sift", "base_mat_f", "base_oracle")
+METHODS = ("demon", *BASELINES)
 
 
 def _baseline(node: DictConfig) -> None:
@@ -131,7 +132,7 @@ def validate(cfg: DictConfig) -> None:
                           f"(the iterative nets flow2 and dm2 are not trained), got {cfg.iterations}")
     for name in stages:
         spec = cfg.schedule.stages[name]
-        _choice(f"schedule.stages.{name}.kind", spec.kind, STAGE_KINDS)
+        _choice(f"schedule.stages.{name}.kind", spec.kind, tuple(STAGE_KINDS))
         _int(f"schedule.stages.{name}.steps", spec.steps, 1)
         _positive(f"schedule.stages.{name}.lr", spec.lr)
         _choice(f"schedule.stages.{name}.oracle", spec.get("oracle"), STAGE_ORACLES[spec.kind])
