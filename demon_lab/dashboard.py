@@ -5,25 +5,29 @@ its runs in the machine-learning view (MLflow 3 opens in its GenAI view, which h
 runs), showing the job runs (not the sweeps' parent runs nor the stage runs) with the key test
 metrics as columns (``--columns``), and the link to the study report that a sweep logged on its
 parent run (``report/``, see ``python -m demon_lab.report``). With ``--screenshot PNG`` it instead
-loads that runs view once in headless Chromium, saves what a user would see, and stops the server::
+loads that runs view (or, with ``--page report``, that report) once in headless Chromium, saves
+what a user would see, and stops the server::
 
     python -m demon_lab.dashboard                               # serve until Ctrl-C
     python -m demon_lab.dashboard --experiment iterations --screenshot docs/dashboard.png
 
-How MLflow 3.17's UI is told what to show (its source, ``mlflow/server/js/src/experiment-tracking/``):
+How MLflow 3.17's UI is told what to show (its source: ``mlflow/server/js/src/`` in mlflow/mlflow;
+checked against the 3.17.2 build this package installs):
 
-- columns and the run filter: a *shared view*, the UI's "share view" feature: the experiment tag
-  ``mlflow.sharedViewState.<key>`` holds the view state as JSON (search facets such as
-  ``searchFilter``, UI state such as ``selectedColumns``) and the URL parameter
-  ``viewStateShareKey=<key>`` applies it (``hooks/useSharedExperimentViewState.ts``,
-  ``models/ExperimentPageUIState.tsx``; column keys are ``metrics.`NAME```). The dashboard writes
-  that tag into each experiment it links (the same key for the same view, so it is written once).
-- the assistant side panel: on a local server the UI opens it on the first visit, remembered in the
-  browser's local storage (``mlflow.assistant.fab.autoOpenedOnFirstLoad_v1``, and
-  ``mlflow.assistant.panelOpen_v1`` while it is open). A URL cannot set those, so the screenshot
-  drives Chromium through its DevTools protocol (``--remote-debugging-pipe``: no port, no extra
-  package) and stores both before the page's scripts run. In a browser of one's own, closing the
-  panel once is remembered the same way.
+- columns, filter and order of the runs table: a *shared view*, what the UI's "share view" does:
+  the experiment tag ``mlflow.sharedViewState.<key>`` holds the view state as JSON (search facets
+  such as ``searchFilter`` and ``orderByKey``, UI state such as ``selectedColumns`` and
+  ``columnWidths``; column keys read ``metrics.`NAME```) and the URL parameter
+  ``viewStateShareKey=<key>`` applies it (``experiment-tracking/components/experiment-page/``:
+  ``hooks/useSharedExperimentViewState.ts``, ``models/ExperimentPageUIState.tsx``). The dashboard
+  writes that tag into each experiment it links (the same key for the same view, so once).
+- the assistant side panel: on a local server the UI opens it on the first visit and remembers
+  that in the browser's local storage (``assistant/AssistantFloatingButton.tsx``:
+  ``mlflow.assistant.fab.autoOpenedOnFirstLoad_v1``; ``assistant/AssistantContext.tsx``:
+  ``mlflow.assistant.panelOpen_v1``). A URL cannot set those, so the screenshot drives Chromium
+  through its DevTools protocol (``--remote-debugging-pipe``: no port, no extra package) and
+  stores both before the page's scripts run. In one's own browser, closing the panel once is
+  remembered the same way.
 """
 
 from __future__ import annotations
@@ -121,7 +125,10 @@ def study_report(server: str, experiment_id: str) -> tuple[str, str] | None:
                                         "order_by": ["attributes.start_time DESC"]}).get("runs", [])
     for run in found:
         run_id = run["info"]["run_id"]
-        files = api(server, f"artifacts/list?{urllib.parse.urlencode({'run_id': run_id, 'path': 'report'})}")
+        try:
+            files = api(server, f"artifacts/list?{urllib.parse.urlencode({'run_id': run_id, 'path': 'report'})}")
+        except TrackingError:  # artifacts this server cannot read (another machine's folder): no link
+            continue
         reports = sorted(f["path"] for f in files.get("files", []) if f["path"].endswith(".md"))
         if reports:
             return run_id, reports[0]
@@ -136,6 +143,13 @@ def find_browser() -> str | None:
     return None
 
 
+# Runs a command with two inherited fds moved to 3 and 4, where --remote-debugging-pipe expects them
+# (via fds >= 10 first, so neither end overwrites the other; dup2 makes them inheritable).
+_ON_FDS_3_AND_4 = ("import fcntl, os, sys; fds = [int(fd) for fd in sys.argv[1:3]]; "
+                   "a, b = (fcntl.fcntl(fd, fcntl.F_DUPFD, 10) for fd in fds); os.dup2(a, 3); os.dup2(b, 4); "
+                   "[os.close(fd) for fd in (a, b, *fds) if fd not in (3, 4)]; os.execv(sys.argv[3], sys.argv[3:])")
+
+
 class DevTools:
     """Chromium driven through its DevTools protocol over ``--remote-debugging-pipe``: commands go
     to the browser's fd 3 and replies come from its fd 4, JSON messages ending in NUL (no port, no
@@ -146,9 +160,8 @@ class DevTools:
         self._from_browser, replies = os.pipe()
         self._log = tempfile.TemporaryFile()
         self.name = Path(browser).name
-        # the shell puts the pipe's ends on the fds 3 and 4 Chromium expects
-        self.process = subprocess.Popen(["sh", "-c", f'exec "$0" "$@" 3<&{commands} 4>&{replies}', browser, *flags,
-                                         "--remote-debugging-pipe"], pass_fds=(commands, replies),
+        self.process = subprocess.Popen([sys.executable, "-c", _ON_FDS_3_AND_4, str(commands), str(replies), browser,
+                                         *flags, "--remote-debugging-pipe"], pass_fds=(commands, replies),
                                         stdin=subprocess.DEVNULL, stdout=self._log, stderr=self._log)
         os.close(commands)
         os.close(replies)
@@ -313,6 +326,9 @@ def main(argv: Sequence[str] | None = None) -> int:
                         help="comma-separated metrics shown as columns of the job runs (params.NAME, tags.NAME: "
                              "a param or tag; '': MLflow's own columns of every run); default: %(default)s")
     parser.add_argument("--screenshot", type=Path, help="save the runs page as PNG and exit")
+    parser.add_argument("--page", choices=("runs", "report"), default="runs",
+                        help="what --screenshot shows: the runs with --columns (default), or the study report on "
+                             "the newest sweep parent run that has one")
     args = parser.parse_args(argv)
     if not args.tracking_uri.startswith("sqlite:///"):
         print(f"error: --tracking-uri {args.tracking_uri!r}: expected a sqlite:/// store (a running server "
@@ -336,7 +352,14 @@ def main(argv: Sequence[str] | None = None) -> int:
 
             if args.screenshot is not None:
                 name = args.experiment or next(iter(sorted(ids, key=lambda n: n == "Default")))
-                capture(link(ids[name]), args.screenshot, until=RUNS_RENDERED)
+                if args.page == "report":
+                    found = study_report(server, ids[name])
+                    if found is None:
+                        raise TrackingError(f"--page report: no sweep run of {name!r} has a study report (report/); "
+                                            f"python -m demon_lab.report explains how one is made")
+                    capture(run_url(server, ids[name], *found), args.screenshot)
+                else:
+                    capture(link(ids[name]), args.screenshot, until=RUNS_RENDERED)
                 print(f"[demon_lab.dashboard] {name}: {args.screenshot}", flush=True)
                 return 0
             for name, experiment_id in sorted(ids.items(), key=lambda kv: int(kv[1])):

@@ -4,6 +4,7 @@ loaded in headless Chromium (Debian's ``chromium``; ``.ci/run`` installs it)."""
 from __future__ import annotations
 
 import os
+import re
 import struct
 import zlib
 
@@ -14,6 +15,8 @@ from tests.conftest import free_port
 from tests.test_pipeline import cli, client, smoke_overrides
 
 pytestmark = pytest.mark.dashboard
+PANEL = 'data-component-id="mlflow.assistant.chat_panel'
+"""In the DOM while MLflow's assistant side panel is open (its chat panel's components)."""
 
 
 @pytest.fixture(scope="module")
@@ -89,12 +92,42 @@ def test_the_dashboard_shows_the_runs_of_a_sweep(tmp_path, browser):
 
         # the runs page, rendered: the sweep's parent row and the run count, and a non-blank picture
         png = tmp_path / "runs.png"
-        dom = dashboard.capture(dashboard.runs_url(server, experiment.experiment_id), png, browser=browser)
+        dom = dashboard.capture(dashboard.runs_url(server, experiment.experiment_id), png, browser=browser,
+                                until=dashboard.RUNS_RENDERED)
         assert parent.info.run_name in dom
         assert "<strong>" + str(len(runs)) + "</strong> matching runs" in dom
         width, height, rows = _png_rows(png)
         assert (width, height) == (1600, 900)
         assert len(set(rows)) > 100  # many distinct pixel rows: a rendered table, not an empty page
+
+        # the dashboard's view of the sweep: the job runs with test metrics as columns (names and
+        # values in the table), and MLflow's assistant panel closed (it opens on a first visit)
+        columns = sorted(k for k in next(iter(jobs.values())).data.metrics if k.startswith("test/"))[:2]
+        view = dashboard.share_view(server, experiment.experiment_id, dashboard.view_state(columns))
+        dom = dashboard.capture(dashboard.runs_url(server, experiment.experiment_id, view), png, browser=browser,
+                                until=dashboard.RUNS_RENDERED)
+        assert "<strong>" + str(len(jobs)) + "</strong> matching runs" in dom  # the jobs only
+        for key in columns:
+            assert key in dom  # the column's header
+            assert any(repr(job.data.metrics[key]) in dom for job in jobs.values())  # the values in its cells
+        assert all(job.info.run_name in dom for job in jobs.values()) and parent.info.run_name not in dom
+        assert PANEL not in dom and "assistant-fab-label" in dom  # the panel is closed, its button there
+        width, height, rows = _png_rows(png)
+        assert (width, height) == (1600, 900) and len(set(rows)) > 100
+        opened = dashboard.capture(dashboard.runs_url(server, experiment.experiment_id, view), browser=browser,
+                                   storage={}, until=dashboard.RUNS_RENDERED)
+        assert PANEL in opened  # the marker is real: a first visit without the stored state shows the panel
+
+        # a study report on the sweep's parent run (what the sweep callback logs under report/): linked and shown
+        assert dashboard.study_report(server, experiment.experiment_id) is None
+        store.log_text(parent.info.run_id, "# A study\n\n| row | L1-inv |\n|---|---|\n| row a | 0.123 ± 0.045 |\n",
+                       "report/study.md")
+        found = dashboard.study_report(server, experiment.experiment_id)
+        assert found == (parent.info.run_id, "report/study.md")
+        page = dashboard.capture(dashboard.run_url(server, experiment.experiment_id, *found), browser=browser,
+                                 until="document.body.innerText.includes('row a')")
+        assert re.search(r'role="cell"[^>]*><span[^>]*>0\.123 ± 0\.045</span>', page)  # the Markdown table, rendered
+        assert PANEL not in page
 
         # each job's own page names the job and shows its test metrics
         for run_id, job in jobs.items():
@@ -106,3 +139,16 @@ def test_the_dashboard_shows_the_runs_of_a_sweep(tmp_path, browser):
 def test_dashboard_command_refuses_a_missing_store(tmp_path, capsys):
     assert dashboard.main(["--tracking-uri", f"sqlite:///{tmp_path}/none.db"]) == 2
     assert "no such store" in capsys.readouterr().err
+
+
+def test_the_view_of_the_runs_names_its_columns_the_ui_way():
+    """MLflow's UI keys a runs-table column as metrics.`NAME` (params.`NAME`, tags.`NAME`); sorted by a
+    metric, it lists the matching runs themselves rather than nesting them under their parents."""
+    state = dashboard.view_state(["test/set/l1_inv", "params.seed", "tags.demon_lab.row"])
+    assert state["selectedColumns"] == ["metrics.`test/set/l1_inv`", "params.`seed`", "tags.`demon_lab.row`"]
+    assert state["orderByKey"] == "metrics.`test/set/l1_inv`" and state["orderByAsc"] is True
+    assert state["searchFilter"] == dashboard.JOBS_FILTER and set(state["columnWidths"]) == set(state["columnOrder"])
+    assert "orderByKey" not in dashboard.view_state(["params.seed"])
+    url = dashboard.runs_url("http://127.0.0.1:5000/", "3", "demon_lab-abc")
+    assert url == ("http://127.0.0.1:5000/#/experiments/3/runs?viewStateShareKey=demon_lab-abc"
+                   "&workflowType=machine_learning")
