@@ -10,16 +10,17 @@ triangulation angle is the median, over the valid pixels of view 1, of the angle
 point between the rays from the two camera centres. Means and (population) standard deviations
 are over pairs; the fractions are means over pairs of per-pair pixel fractions (visible: valid
 and seen in view 2); the median depth is the median over pairs of each pair's median view-1
-depth, in the source's unit (metres for real data). ``zero_flow_epe`` is the mean over pairs of
-the EPE of predicting no flow (DeMoN's EPE, normalised units, full resolution): what a flow net
-must beat. ``tran_x_negative_fraction``: the share of pairs with t_x < 0, i.e. whose camera 2 sits to
-the right of camera 1 (its centre is -R^T t; about half for a source without a sideways bias). ``photometric_error``: the mean over pairs of the mean
-|image 1 - image 2 warped by the GT flow| over the visible pixels, in grey levels of 255 (how well
-brightness constancy holds: what ties the flow to the images). ``near_camera2_fraction``: the share
-of pairs with a valid view-1 point at camera-2 depth z2 < 0.1 z1 (near or behind camera 2's image
-plane), where the ground-truth flow (DeMoN's ``depth_to_flow``, no check of z2) grows without
-bound and one pair can dominate a training batch's flow loss. Samples are read at the source's native
-resolution (synthetic ones at the configured ``data.size``), without augmentation.
+depth, in the source's unit (metres for real data). ``zero_flow_epe`` is the mean over pairs of the
+EPE of predicting no flow (DeMoN's EPE, normalised units, full resolution): what a flow net must
+beat. ``tran_x_negative_fraction``: the share of pairs with t_x < 0, i.e. whose camera 2 sits to the
+right of camera 1 (its centre is -R^T t; about half for a source without a sideways bias).
+``photometric_error``: the mean over pairs of the mean |image 1 - image 2 warped by the GT flow|
+over the visible pixels, in grey levels of 255 (how well brightness constancy holds: what ties the
+flow to the images). ``near_camera2_fraction``: the share of pairs with a valid view-1 point at
+camera-2 depth z2 < 0.1 z1 (near or behind camera 2's image plane), where the ground-truth flow
+(DeMoN's ``depth_to_flow``, no check of z2) grows without bound and one pair can dominate a training
+batch's flow loss. Samples are read at the source's native resolution (synthetic ones at the
+configured ``data.size``), without augmentation.
 
     python -m demon_lab.data_stats data=synthetic_sun3d n=500 out=stats.json
     python -m demon_lab.data_stats data=pair_folder data.path=/data/sun3d_pairs

@@ -24,14 +24,11 @@ import argparse
 import contextlib
 import csv
 import io
-import json
 import math
 import os
-import shutil
 import subprocess
 import sys
 import tempfile
-from collections import defaultdict
 from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -266,7 +263,7 @@ def cell(result: Mapping[str, Any], table: str, dataset: str, row: str, col: str
     return Cell(float(c["mean"]), float(c["std"]), float(c["ci95"]), int(c["n"]), tuple(map(float, c["values"])))
 
 
-def _has_values(result: Mapping[str, Any], table: str, dataset: str) -> bool:
+def has_values(result: Mapping[str, Any], table: str, dataset: str) -> bool:
     index = result["cells"].index
     return bool(((index.get_level_values("table") == table) & (index.get_level_values("dataset") == dataset)).any())
 
@@ -361,7 +358,7 @@ def write_markdown(spec, result, info, failed: pd.DataFrame, paper_rows) -> str:
     for table in spec["tables"]:
         w(f"## {table['caption']}\n\n")
         for dataset, paper_dataset in spec["datasets"].items():
-            if not _has_values(result, table["name"], dataset):
+            if not has_values(result, table["name"], dataset):
                 continue
             w(f"### {dataset}" + (f" (paper: {paper_dataset})" if paper_dataset else "") + "\n\n")
             header = ["row", "n", *[column(c).label for c in table["columns"]]]
@@ -427,7 +424,7 @@ def write_tex(spec, result, info, paper_rows) -> str:
       f"seeds {info['seeds']}, {info['runs']} runs\n% needs \\usepackage{{booktabs}}\n")
     for table in spec["tables"]:
         for dataset, paper_dataset in spec["datasets"].items():
-            if not _has_values(result, table["name"], dataset):
+            if not has_values(result, table["name"], dataset):
                 continue
             cols = table["columns"]
             w("\\begin{table}[t]\\centering\\small\n")
@@ -446,194 +443,6 @@ def write_tex(spec, result, info, paper_rows) -> str:
                                                               for c in cols]]) + " \\\\\n")
             w("\\bottomrule\\end{tabular}\n\\end{table}\n\n")
     return out.getvalue()
-
-
-# ----------------------------------------------------------------------------- figures
-
-UNITS = {"l1_inv": "inverse depth, unit baseline", "sc_inv": "log depth, scale-invariant",
-         "l1_rel": "relative to true depth", "delta_1.25": "fraction of pixels", "delta_1.25_2": "fraction of pixels",
-         "delta_1.25_3": "fraction of pixels", "epe": "normalised flow units"}
-"""What the figures' axes add to ``metrics.column(key).label``: its unit (the table names quantities only)."""
-MOTION_AXES = {"rot_deg": "rotation error (°)", "tran_deg": "translation direction error (°)"}
-
-
-def _axis(key: str) -> str:
-    if key in MOTION_AXES:
-        return MOTION_AXES[key]
-    return f"{column(key).label} ({UNITS[key]})" if key in UNITS else column(key).label
-
-
-def _artifact(run: Mapping[str, Any], path: str) -> Path | None:
-    """A run's artifact as a file here, or None. MLflow's artifact API answers by downloading (a
-    copy, or a transfer from a server); the figures only read artifacts already on this machine."""
-    from urllib.parse import unquote, urlparse
-
-    parsed = urlparse(str(run["artifact_uri"]))
-    root = Path(unquote(parsed.path)) if parsed.scheme in ("file", "") else None
-    target = root / path if root is not None else None
-    return target if target is not None and target.exists() else None
-
-
-def _per_sample_rows(run) -> list[dict[str, str]]:
-    path = _artifact(run, "per_sample_metrics.csv")
-    if path is None:
-        return []
-    with open(path, newline="") as f:
-        return list(csv.DictReader(f))
-
-
-def _counted(result: Mapping[str, Any], table: Mapping[str, Any]) -> Iterator[tuple[str, pd.DataFrame]]:
-    """(row label, its counted runs by seed) for each row of a table, in the table's order."""
-    used = result["used"]
-    for row in table["rows"]:
-        yield row["label"], used[(used["table"] == table["name"]) & (used["row"] == row["label"])]
-
-
-def _save(fig, out: Path) -> Path:
-    import matplotlib.pyplot as plt
-
-    fig.tight_layout()
-    fig.savefig(out, dpi=110)
-    plt.close(fig)
-    return out
-
-
-def figure_iterations(spec, result, paper_rows, path: Path) -> list[Path]:
-    import matplotlib.pyplot as plt
-
-    table = spec["tables"][0]
-    columns = [c for c in ("l1_inv", "sc_inv", "l1_rel", "rot_deg", "tran_deg", "epe") if c in table["columns"]]
-    datasets = [d for d in spec["datasets"] if _has_values(result, table["name"], d)]
-    if not datasets or not columns:
-        return []
-    fig, axes = plt.subplots(1, len(columns), figsize=(3.2 * len(columns), 3.3), squeeze=False)
-    iterations = list(range(len(table["rows"])))
-    for ax, c in zip(axes[0], columns):
-        for dataset in datasets:
-            cells = [cell(result, table["name"], dataset, r["label"], c) for r in table["rows"]]
-            ax.errorbar(iterations, [x.mean for x in cells], yerr=[0 if math.isnan(x.ci95) else x.ci95 for x in cells],
-                        marker="o", ms=3, capsize=2, label=dataset[:24])
-        paper = [paper_cells(paper_rows, r.get("paper"), "SUN3D", [c]).get(c, math.nan) for r in table["rows"]]
-        if any(math.isfinite(p) for p in paper):
-            ax.plot(iterations, paper, "k--", marker="s", ms=3, label="paper (SUN3D)")
-        ax.set_title(column(c).label)
-        ax.set_xlabel("iteration (pass of the iterative net)")
-        ax.set_xticks(iterations)
-        ax.set_ylabel(_axis(c), fontsize=8)
-        ax.grid(alpha=0.3)
-    axes[0][0].legend(fontsize=6)
-    fig.suptitle(f"{spec['title']}: error after each pass, mean ± 95 % CI over seeds per test set", fontsize=9)
-    return [_save(fig, path / f"{spec['name']}_iterations.png")]
-
-
-def figure_pixel_histograms(spec, result, path: Path) -> list[Path]:
-    import matplotlib.pyplot as plt
-
-    table = spec["tables"][0]
-    outputs = []
-    for dataset in spec["datasets"]:
-        merged: dict[str, dict[str, Any]] = {}
-        for label, runs in _counted(result, table):
-            for _, run in runs.iterrows():
-                artifact = _artifact(run, "pixel_errors.json")
-                if artifact is None:
-                    continue
-                hist = json.loads(artifact.read_text()).get(dataset)
-                if not hist:
-                    continue
-                for metric, h in hist.items():
-                    m = merged.setdefault(label, {}).setdefault(metric, {"counts": np.zeros(h["bins"]), "sum": 0.0,
-                                                                         "below": 0.0, "upper": h["upper"]})
-                    m["counts"] += np.asarray(h["counts"])
-                    m["sum"] += h["sum"]
-                    m["below"] += h["sum_below_last_bin"]
-        if not merged:
-            continue
-        metrics = ["l1_inv", "l1_rel"]
-        fig, axes = plt.subplots(1, 2, figsize=(9, 3.4))
-        for ax, metric in zip(axes, metrics):
-            for label, hists in merged.items():
-                h = hists[metric]
-                total = h["counts"].sum()
-                if total == 0:
-                    continue
-                edges = np.linspace(0, h["upper"], len(h["counts"]) + 1)
-                below = total - h["counts"][-1]
-                ax.stairs(h["counts"] / total, edges,
-                          label=f"{label}: mean {h['sum'] / total:.3f} ({h['below'] / max(below, 1):.3f})")
-            ax.set_title(f"{dataset}: per-pixel {column(metric).label} (last bin: above range)", fontsize=8)
-            ax.set_xlabel(f"per-pixel {_axis(metric)}", fontsize=8)
-            ax.set_ylabel("fraction of pixels")
-            ax.legend(fontsize=6)
-        fig.suptitle(f"{spec['title']}: per-pixel depth errors on {dataset}, all counted runs "
-                     f"(legend: mean, and mean below the last bin)", fontsize=9)
-        outputs.append(_save(fig, path / f"{spec['name']}_pixel_errors_{dataset}.png"))
-    return outputs
-
-
-def figure_motion_distributions(spec, result, path: Path) -> list[Path]:
-    import matplotlib.pyplot as plt
-
-    table = spec["tables"][0]
-    outputs = []
-    row_pass = {r["label"]: r.get("metrics", "") for r in table["rows"]}
-    used = result["used"]
-    tables = {run["run_id"]: _per_sample_rows(run) for _, run in used.drop_duplicates("run_id").iterrows()}
-    for dataset in spec["datasets"]:
-        values: dict[str, dict[str, list[float]]] = defaultdict(lambda: {"rot_deg": [], "tran_deg": []})
-        for label, runs in _counted(result, table):
-            for _, run in runs.iterrows():
-                rows = [r for r in tables[run["run_id"]] if r.get("dataset") == dataset]
-                wanted = row_pass[label].removeprefix("it") if row_pass[label].startswith("it") else None
-                if wanted is None:  # the summary: the refined depth's motion (last pass), or a baseline's
-                    passes = {r["it"] for r in rows}
-                    wanted = "refined" if "refined" in passes else ("baseline" if "baseline" in passes
-                                                                    else max(passes, default="0", key=str))
-                for r in rows:
-                    if r["it"] == wanted:
-                        for k in ("rot_deg", "tran_deg"):
-                            if r.get(k) not in (None, "", "nan"):
-                                values[label][k].append(float(r[k]))
-        if not any(v["rot_deg"] for v in values.values()):
-            continue
-        fig, axes = plt.subplots(1, 2, figsize=(9, 3.4))
-        for ax, metric, top in zip(axes, ("rot_deg", "tran_deg"), (20.0, 120.0)):
-            edges = np.linspace(0, top, 31)
-            for label, v in values.items():
-                x = np.minimum(np.asarray(v[metric]), top - 1e-9)
-                if len(x):
-                    ax.hist(x, bins=edges, histtype="step", density=False, weights=np.full(len(x), 1 / len(x)),
-                            label=f"{label} (mean {np.mean(v[metric]):.1f}°, n={len(x)})")
-            ax.set_title(f"{dataset}: {column(metric).label} per sample (last bin: above range)", fontsize=8)
-            ax.set_xlabel(_axis(metric), fontsize=8)
-            ax.set_ylabel("fraction of samples")
-            ax.legend(fontsize=6)
-        fig.suptitle(f"{spec['title']}: per-sample motion errors on {dataset}, all counted runs", fontsize=9)
-        outputs.append(_save(fig, path / f"{spec['name']}_motion_{dataset}.png"))
-    return outputs
-
-
-def figure_qualitative(spec, result, path: Path, per_row_limit: int = 1) -> list[Path]:
-    """Copies the first depth visualisation of each row's lowest seed (image | GT | prediction |
-    flow | normals) for every test set."""
-    table = spec["tables"][0]
-    outputs = []
-    for label, runs in _counted(result, table):
-        if runs.empty:
-            continue
-        run = runs.loc[runs["seed"].idxmin()]
-        images = _artifact(run, "images")
-        if images is None:
-            continue
-        for dataset in spec["datasets"]:
-            safe = "".join(c if c.isalnum() or c in "-_" else "_" for c in dataset)
-            found = sorted(images.glob(f"{safe}_0_*.png"))[:per_row_limit]
-            for f in found:
-                row_safe = "".join(c if c.isalnum() else "_" for c in label)
-                out = path / f"{spec['name']}_qualitative_{row_safe}_{safe}.png"
-                shutil.copyfile(f, out)
-                outputs.append(out)
-    return outputs
 
 
 # ----------------------------------------------------------------------------- commands
@@ -665,6 +474,14 @@ def report(name: str, uri: str, out_dir: Path, directory: Path = STUDIES) -> dic
     figures: list[Path] = []
     import matplotlib
 
+    from demon_lab.report_figures import (
+        figure_iterations,
+        figure_motion_distributions,
+        figure_pixel_histograms,
+        figure_qualitative,
+        local_artifact,
+    )
+
     matplotlib.use("Agg")
     for figure in spec.get("figures", []):
         if figure == "iterations":
@@ -677,7 +494,7 @@ def report(name: str, uri: str, out_dir: Path, directory: Path = STUDIES) -> dic
             figures += figure_qualitative(spec, result, figures_dir)
     result["figures"] = [str(p) for p in figures]
     used = result["used"].drop_duplicates("run_id")
-    result["without_artifacts"] = sorted(r["run_id"] for _, r in used.iterrows() if _artifact(r, "") is None)
+    result["without_artifacts"] = sorted(r["run_id"] for _, r in used.iterrows() if local_artifact(r, "") is None)
     result["counted"] = len(used)
     if result["without_artifacts"] and set(spec.get("figures", [])) - {"iterations"}:
         print(f"[demon_lab.report] {name}: {len(result['without_artifacts'])} of {len(used)} counted runs have no "

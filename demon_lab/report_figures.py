@@ -1,0 +1,209 @@
+"""The figures of a study's report (``python -m demon_lab.report``): metrics against the number of
+iterative passes (the supplementary's Figure 5 / Table 3), per-pixel depth-error histograms
+(Figure 6), per-sample motion-error distributions (Figure 7) and each row's qualitative panels.
+
+Each figure function takes the study spec and the report's ``build`` result and returns the PNG
+files it wrote; those drawn from run artifacts read them where the store keeps them on this machine.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import shutil
+from collections import defaultdict
+from collections.abc import Iterator, Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from demon_lab.metrics import column
+from demon_lab.report import cell, has_values, paper_cells
+
+UNITS = {"l1_inv": "inverse depth, unit baseline", "sc_inv": "log depth, scale-invariant",
+         "l1_rel": "relative to true depth", "delta_1.25": "fraction of pixels", "delta_1.25_2": "fraction of pixels",
+         "delta_1.25_3": "fraction of pixels", "epe": "normalised flow units"}
+"""What the figures' axes add to ``metrics.column(key).label``: its unit (the table names quantities only)."""
+MOTION_AXES = {"rot_deg": "rotation error (°)", "tran_deg": "translation direction error (°)"}
+
+
+def _axis(key: str) -> str:
+    if key in MOTION_AXES:
+        return MOTION_AXES[key]
+    return f"{column(key).label} ({UNITS[key]})" if key in UNITS else column(key).label
+
+
+def local_artifact(run: Mapping[str, Any], path: str) -> Path | None:
+    """A run's artifact as a file here, or None. MLflow's artifact API answers by downloading (a
+    copy, or a transfer from a server); the figures only read artifacts already on this machine."""
+    from urllib.parse import unquote, urlparse
+
+    parsed = urlparse(str(run["artifact_uri"]))
+    root = Path(unquote(parsed.path)) if parsed.scheme in ("file", "") else None
+    target = root / path if root is not None else None
+    return target if target is not None and target.exists() else None
+
+
+def _per_sample_rows(run) -> list[dict[str, str]]:
+    path = local_artifact(run, "per_sample_metrics.csv")
+    if path is None:
+        return []
+    with open(path, newline="") as f:
+        return list(csv.DictReader(f))
+
+
+def _counted(result: Mapping[str, Any], table: Mapping[str, Any]) -> Iterator[tuple[str, pd.DataFrame]]:
+    """(row label, its counted runs by seed) for each row of a table, in the table's order."""
+    used = result["used"]
+    for row in table["rows"]:
+        yield row["label"], used[(used["table"] == table["name"]) & (used["row"] == row["label"])]
+
+
+def _save(fig, out: Path) -> Path:
+    import matplotlib.pyplot as plt
+
+    fig.tight_layout()
+    fig.savefig(out, dpi=110)
+    plt.close(fig)
+    return out
+
+
+def figure_iterations(spec, result, paper_rows, path: Path) -> list[Path]:
+    import matplotlib.pyplot as plt
+
+    table = spec["tables"][0]
+    columns = [c for c in ("l1_inv", "sc_inv", "l1_rel", "rot_deg", "tran_deg", "epe") if c in table["columns"]]
+    datasets = [d for d in spec["datasets"] if has_values(result, table["name"], d)]
+    if not datasets or not columns:
+        return []
+    fig, axes = plt.subplots(1, len(columns), figsize=(3.2 * len(columns), 3.3), squeeze=False)
+    iterations = list(range(len(table["rows"])))
+    for ax, c in zip(axes[0], columns):
+        for dataset in datasets:
+            cells = [cell(result, table["name"], dataset, r["label"], c) for r in table["rows"]]
+            ax.errorbar(iterations, [x.mean for x in cells], yerr=[0 if math.isnan(x.ci95) else x.ci95 for x in cells],
+                        marker="o", ms=3, capsize=2, label=dataset[:24])
+        paper = [paper_cells(paper_rows, r.get("paper"), "SUN3D", [c]).get(c, math.nan) for r in table["rows"]]
+        if any(math.isfinite(p) for p in paper):
+            ax.plot(iterations, paper, "k--", marker="s", ms=3, label="paper (SUN3D)")
+        ax.set_title(column(c).label)
+        ax.set_xlabel("iteration (pass of the iterative net)")
+        ax.set_xticks(iterations)
+        ax.set_ylabel(_axis(c), fontsize=8)
+        ax.grid(alpha=0.3)
+    axes[0][0].legend(fontsize=6)
+    fig.suptitle(f"{spec['title']}: error after each pass, mean ± 95 % CI over seeds per test set", fontsize=9)
+    return [_save(fig, path / f"{spec['name']}_iterations.png")]
+
+
+def figure_pixel_histograms(spec, result, path: Path) -> list[Path]:
+    import matplotlib.pyplot as plt
+
+    table = spec["tables"][0]
+    outputs = []
+    for dataset in spec["datasets"]:
+        merged: dict[str, dict[str, Any]] = {}
+        for label, runs in _counted(result, table):
+            for _, run in runs.iterrows():
+                artifact = local_artifact(run, "pixel_errors.json")
+                if artifact is None:
+                    continue
+                hist = json.loads(artifact.read_text()).get(dataset)
+                if not hist:
+                    continue
+                for metric, h in hist.items():
+                    m = merged.setdefault(label, {}).setdefault(metric, {"counts": np.zeros(h["bins"]), "sum": 0.0,
+                                                                         "below": 0.0, "upper": h["upper"]})
+                    m["counts"] += np.asarray(h["counts"])
+                    m["sum"] += h["sum"]
+                    m["below"] += h["sum_below_last_bin"]
+        if not merged:
+            continue
+        metrics = ["l1_inv", "l1_rel"]
+        fig, axes = plt.subplots(1, 2, figsize=(9, 3.4))
+        for ax, metric in zip(axes, metrics):
+            for label, hists in merged.items():
+                h = hists[metric]
+                total = h["counts"].sum()
+                if total == 0:
+                    continue
+                edges = np.linspace(0, h["upper"], len(h["counts"]) + 1)
+                below = total - h["counts"][-1]
+                ax.stairs(h["counts"] / total, edges,
+                          label=f"{label}: mean {h['sum'] / total:.3f} ({h['below'] / max(below, 1):.3f})")
+            ax.set_title(f"{dataset}: per-pixel {column(metric).label} (last bin: above range)", fontsize=8)
+            ax.set_xlabel(f"per-pixel {_axis(metric)}", fontsize=8)
+            ax.set_ylabel("fraction of pixels")
+            ax.legend(fontsize=6)
+        fig.suptitle(f"{spec['title']}: per-pixel depth errors on {dataset}, all counted runs "
+                     f"(legend: mean, and mean below the last bin)", fontsize=9)
+        outputs.append(_save(fig, path / f"{spec['name']}_pixel_errors_{dataset}.png"))
+    return outputs
+
+
+def figure_motion_distributions(spec, result, path: Path) -> list[Path]:
+    import matplotlib.pyplot as plt
+
+    table = spec["tables"][0]
+    outputs = []
+    row_pass = {r["label"]: r.get("metrics", "") for r in table["rows"]}
+    used = result["used"]
+    tables = {run["run_id"]: _per_sample_rows(run) for _, run in used.drop_duplicates("run_id").iterrows()}
+    for dataset in spec["datasets"]:
+        values: dict[str, dict[str, list[float]]] = defaultdict(lambda: {"rot_deg": [], "tran_deg": []})
+        for label, runs in _counted(result, table):
+            for _, run in runs.iterrows():
+                rows = [r for r in tables[run["run_id"]] if r.get("dataset") == dataset]
+                wanted = row_pass[label].removeprefix("it") if row_pass[label].startswith("it") else None
+                if wanted is None:  # the summary: the refined depth's motion (last pass), or a baseline's
+                    passes = {r["it"] for r in rows}
+                    wanted = "refined" if "refined" in passes else ("baseline" if "baseline" in passes
+                                                                    else max(passes, default="0", key=str))
+                for r in rows:
+                    if r["it"] == wanted:
+                        for k in ("rot_deg", "tran_deg"):
+                            if r.get(k) not in (None, "", "nan"):
+                                values[label][k].append(float(r[k]))
+        if not any(v["rot_deg"] for v in values.values()):
+            continue
+        fig, axes = plt.subplots(1, 2, figsize=(9, 3.4))
+        for ax, metric, top in zip(axes, ("rot_deg", "tran_deg"), (20.0, 120.0)):
+            edges = np.linspace(0, top, 31)
+            for label, v in values.items():
+                x = np.minimum(np.asarray(v[metric]), top - 1e-9)
+                if len(x):
+                    ax.hist(x, bins=edges, histtype="step", density=False, weights=np.full(len(x), 1 / len(x)),
+                            label=f"{label} (mean {np.mean(v[metric]):.1f}°, n={len(x)})")
+            ax.set_title(f"{dataset}: {column(metric).label} per sample (last bin: above range)", fontsize=8)
+            ax.set_xlabel(_axis(metric), fontsize=8)
+            ax.set_ylabel("fraction of samples")
+            ax.legend(fontsize=6)
+        fig.suptitle(f"{spec['title']}: per-sample motion errors on {dataset}, all counted runs", fontsize=9)
+        outputs.append(_save(fig, path / f"{spec['name']}_motion_{dataset}.png"))
+    return outputs
+
+
+def figure_qualitative(spec, result, path: Path, per_row_limit: int = 1) -> list[Path]:
+    """Copies the first depth visualisation of each row's lowest seed (image | GT | prediction |
+    flow | normals) for every test set."""
+    table = spec["tables"][0]
+    outputs = []
+    for label, runs in _counted(result, table):
+        if runs.empty:
+            continue
+        run = runs.loc[runs["seed"].idxmin()]
+        images = local_artifact(run, "images")
+        if images is None:
+            continue
+        for dataset in spec["datasets"]:
+            safe = "".join(c if c.isalnum() or c in "-_" else "_" for c in dataset)
+            found = sorted(images.glob(f"{safe}_0_*.png"))[:per_row_limit]
+            for f in found:
+                row_safe = "".join(c if c.isalnum() else "_" for c in label)
+                out = path / f"{spec['name']}_qualitative_{row_safe}_{safe}.png"
+                shutil.copyfile(f, out)
+                outputs.append(out)
+    return outputs
