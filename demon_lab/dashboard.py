@@ -58,9 +58,11 @@ BROWSERS = ("chromium", "chromium-browser", "google-chrome", "google-chrome-stab
 # that reaches the network besides the page itself.
 BROWSER_FLAGS = ("--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
                  "--disable-background-networking", "--disable-component-update", "--disable-sync")
-KEY_METRICS = ("test/synthetic_sun3d/l1_inv", "test/synthetic_sun3d/rot_deg", "test/synthetic_sun3d/tran_deg",
-               "test/synthetic_sun3d/epe")
-"""The default ``--columns``: the summary test metrics of the first synthetic test set."""
+KEY_METRICS = ("tags.demon_lab.seed", "tags.demon_lab.iterations", "test/synthetic_sun3d/l1_inv",
+               "test/synthetic_sun3d/rot_deg", "test/synthetic_sun3d/tran_deg", "test/synthetic_sun3d/epe")
+"""The default ``--columns``: which job a row is (its seed and number of passes; add
+``tags.demon_lab.method`` or ``tags.demon_lab.oracle`` for the baselines and oracle studies) and
+the summary test metrics of the synthetic SUN3D-like test set."""
 JOBS_FILTER = "tags.`demon_lab.run_key` LIKE '%'"
 """MLflow search syntax for the job runs: the sweeps' parent runs and the stage runs have no run key."""
 SHARED_VIEW_TAG = "mlflow.sharedViewState."
@@ -99,7 +101,8 @@ def view_state(columns: Sequence[str], search_filter: str = JOBS_FILTER) -> dict
     their parent runs (it fetches missing parents only for that order)."""
     keys = [column_key(c) for c in columns]
     state: dict[str, Any] = {"searchFilter": search_filter, "selectedColumns": keys, "columnOrder": keys,
-                             "columnWidths": {k: 7 * len(c) + 44 for k, c in zip(keys, columns)}}
+                             "columnWidths": {k: 7 * len(c.split(".", 1)[1] if c.startswith(("tags.", "params."))
+                                                           else c) + 44 for k, c in zip(keys, columns)}}
     metric = next((k for k in keys if k.startswith("metrics.")), None)
     if metric is not None:
         state |= {"orderByKey": metric, "orderByAsc": True}

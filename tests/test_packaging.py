@@ -71,3 +71,36 @@ def test_a_wheel_installed_elsewhere_runs_the_smoke_job_the_report_and_tests(tmp
                 str(ROOT / "tests" / "test_identity.py"), str(ROOT / "tests" / "test_data.py"), "-k",
                 "not slow", timeout=900)
     assert tests.returncode == 0, tests.stdout[-3000:]
+
+
+def _code_lines(path: Path) -> list[tuple[int, str]]:
+    """(line number, stripped text) of a module's code: no blank lines, comments or docstrings."""
+    import ast
+
+    text = path.read_text()
+    docstrings = set()
+    for node in ast.walk(ast.parse(text)):
+        body = getattr(node, "body", None)
+        if isinstance(body, list) and body and isinstance(body[0], ast.Expr) and \
+                isinstance(getattr(body[0], "value", None), ast.Constant) and isinstance(body[0].value.value, str):
+            docstrings |= set(range(body[0].lineno, body[0].end_lineno + 1))
+    return [(n, line.strip()) for n, line in enumerate(text.splitlines(), 1)
+            if line.strip() and not line.strip().startswith("#") and n not in docstrings]
+
+
+def test_no_module_repeats_a_block_of_another(window: int = 8):
+    """No run of ``window`` identical code lines appears in two places of the package: one function
+    with a parameter instead of a copy."""
+    seen: dict[tuple[str, ...], str] = {}
+    copies = []
+    for path in sorted((ROOT / "demon_lab").rglob("*.py")):
+        lines = _code_lines(path)
+        for i in range(len(lines) - window + 1):
+            block = tuple(text for _, text in lines[i:i + window])
+            if sum(len(t) > 12 for t in block) < window // 2:
+                continue  # closing brackets, `else:`, `return out`: not logic
+            where = f"{path.relative_to(ROOT)}:{lines[i][0]}"
+            if block in seen and not seen[block].startswith(f"{path.relative_to(ROOT)}:"):
+                copies.append(f"{where} repeats {seen[block]}")
+            seen.setdefault(block, where)
+    assert copies == []
