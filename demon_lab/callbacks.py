@@ -107,7 +107,7 @@ class MultirunTracking(Callback):
 
         study = None
         try:
-            study = report.study_of(str(config.experiment))
+            study = report.study_of(str(config.get("experiment")))
             if study is None:
                 return
             paths = report.publish(study, self.tracker.uri, self.parent)

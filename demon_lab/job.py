@@ -113,10 +113,13 @@ def _train_and_evaluate(cfg: DictConfig, tracker, run_id: str) -> dict[str, Any]
         stage_runs.append(child)
         return MLFlowLogger(tracking_uri=tracker.uri, run_id=child)
 
+    from demon_lab.tracking import process_tracking_uri
+
     needs_chain = cfg.method in ("demon", "base_mat_f")
     try:
-        chain, stages, figures = (prepare_chain(cfg, on_stage, progress=sys.stderr.isatty()) if needs_chain
-                                  else (None, [], {}))
+        with process_tracking_uri():  # MLFlowLogger sets it process-wide: keep it this job's business
+            chain, stages, figures = (prepare_chain(cfg, on_stage, progress=sys.stderr.isatty()) if needs_chain
+                                      else (None, [], {}))
     except BaseException as e:
         for child in stage_runs:
             tracker.fail(child, e)

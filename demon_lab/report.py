@@ -21,7 +21,6 @@ boolean masks on it and the seeds of a cell are aggregated with ``groupby``.
 from __future__ import annotations
 
 import argparse
-import contextlib
 import csv
 import io
 import math
@@ -29,7 +28,7 @@ import os
 import subprocess
 import sys
 import tempfile
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -39,7 +38,7 @@ import yaml
 
 from demon_lab.metrics import column
 from demon_lab.resources import STUDIES
-from demon_lab.tracking import TAG, metric_name, version_tags
+from demon_lab.tracking import TAG, metric_name, process_tracking_uri, version_tags
 
 FIGURES = ("iterations", "pixel_histograms", "motion_distributions", "qualitative")
 CELL_KEYS = ("table", "dataset", "row", "column")
@@ -123,26 +122,6 @@ def paper_cells(rows: Sequence[Mapping[str, str]], ref: Mapping[str, Any] | None
 # ----------------------------------------------------------------------------- runs
 
 
-@contextlib.contextmanager
-def _tracking_uri(uri: str) -> Iterator[None]:
-    """``mlflow.search_runs`` reads the process's tracking URI (it takes none): set ``uri`` for the
-    block, then put back what was there, including ``MLFLOW_TRACKING_URI``, which
-    ``mlflow.set_tracking_uri`` exports (and unsets on None)."""
-    import mlflow
-
-    previous = mlflow.get_tracking_uri() if mlflow.is_tracking_uri_set() else None
-    env = os.environ.get("MLFLOW_TRACKING_URI")
-    mlflow.set_tracking_uri(uri)
-    try:
-        yield
-    finally:
-        mlflow.set_tracking_uri(previous)
-        if env is None:
-            os.environ.pop("MLFLOW_TRACKING_URI", None)
-        else:
-            os.environ["MLFLOW_TRACKING_URI"] = env
-
-
 def _column(runs: pd.DataFrame, name: str) -> pd.Series:
     """A column of the runs frame, or all None where no run has it (search_runs only makes columns
     for the tags, params and metrics some run has)."""
@@ -165,7 +144,7 @@ def fetch_runs(uri: str, experiments: Sequence[str]) -> pd.DataFrame:
     client = MlflowClient(tracking_uri=uri)
     found = {name: exp.experiment_id for name in experiments if (exp := client.get_experiment_by_name(name))}
     if found:  # (search_runs given no experiment that exists would search the Default one)
-        with _tracking_uri(uri):
+        with process_tracking_uri(uri):
             runs = mlflow.search_runs(experiment_names=list(found), output_format="pandas")
     else:
         runs = pd.DataFrame(columns=list(INFO_COLUMNS))

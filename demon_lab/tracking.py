@@ -222,6 +222,28 @@ class Tracker:
 
 
 @contextlib.contextmanager
+def process_tracking_uri(uri: str | None = None) -> Iterator[None]:
+    """MLflow's process-wide tracking URI is ``uri`` in the block (unchanged if None) and what it
+    was afterwards, ``MLFLOW_TRACKING_URI`` included: ``mlflow.set_tracking_uri`` exports that
+    variable, which every process started later inherits (Lightning's ``MLFlowLogger`` calls it,
+    and ``mlflow.search_runs`` reads only the process-wide URI)."""
+    import mlflow
+
+    previous = mlflow.get_tracking_uri() if mlflow.is_tracking_uri_set() else None
+    env = os.environ.get("MLFLOW_TRACKING_URI")
+    if uri is not None:
+        mlflow.set_tracking_uri(uri)
+    try:
+        yield
+    finally:
+        mlflow.set_tracking_uri(previous)
+        if env is None:
+            os.environ.pop("MLFLOW_TRACKING_URI", None)
+        else:
+            os.environ["MLFLOW_TRACKING_URI"] = env
+
+
+@contextlib.contextmanager
 def _store_lock(uri: str) -> Iterator[None]:
     """An exclusive file lock beside a SQLite store (``mlflow.db.lock``) while a process opens it:
     MLflow creates and migrates a fresh database on first use, and processes doing that at the same

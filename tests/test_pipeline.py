@@ -48,10 +48,14 @@ def smoke_run(tmp_path_factory):
 
     tmp = tmp_path_factory.mktemp("smoke")
     threads = torch.get_num_threads()
+    environment = os.environ.get("MLFLOW_TRACKING_URI")
     try:
         result = run(compose_config(smoke_overrides(tmp, "threads=1")))
     finally:
         torch.set_num_threads(threads)
+    # the stage loggers set MLflow's tracking URI process-wide (and export it): the job puts it back,
+    # or every process started later would log to this job's store
+    assert os.environ.get("MLFLOW_TRACKING_URI") == environment
     return tmp, result
 
 

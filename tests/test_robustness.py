@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import os
 import signal
 import subprocess
@@ -232,7 +233,7 @@ def test_a_killed_sweep_reissued_completes_only_the_missing_jobs(tmp_path):
     assert all(r.data.tags["mlflow.parentRunId"] == parent.info.run_id for r in jobs)
 
 
-def test_sweep_verdict_does_not_count_failed_attempts_of_jobs_that_finished_since(tmp_path, capsys):
+def test_sweep_verdict_does_not_count_failed_attempts_of_jobs_that_finished_since(tmp_path, caplog):
     """A job's first attempt FAILED (a crash, a SIGTERM), a later attempt FINISHED: the sweep's
     closing line counts one finished job and no failed one, and names the earlier attempt."""
     from omegaconf import OmegaConf
@@ -248,8 +249,9 @@ def test_sweep_verdict_does_not_count_failed_attempts_of_jobs_that_finished_sinc
     tracker.fail(tracker.start("job", {f"{TAG}run_key": "k1"}, parent_id=parent), RuntimeError("bad data"))
     callback = MultirunTracking()
     callback.tracker, callback.parent, callback.started = tracker, parent, time.time()
-    callback.on_multirun_end(OmegaConf.create({"hydra": {"sweep": {"dir": str(tmp_path / "sweep")}}}))
-    line = capsys.readouterr().out.strip().splitlines()[-1]
+    with caplog.at_level(logging.INFO, logger="demon_lab"):
+        callback.on_multirun_end(OmegaConf.create({"hydra": {"sweep": {"dir": str(tmp_path / "sweep")}}}))
+    line = caplog.messages[-1]
     assert line.endswith("1 job runs FINISHED, 1 FAILED (1 earlier FAILED attempt(s) of jobs that have since FINISHED)")
 
 
