@@ -326,7 +326,7 @@ def _logging_share(make, batch, size, width, steps: int = 300) -> float:
     from lightning.pytorch.loggers import MLFlowLogger
 
     from demon_lab.nets.chain import DeMoN
-    from demon_lab.tracking import Tracker
+    from demon_lab.tracking import Tracker, process_tracking_uri
 
     class TimedLogger(MLFlowLogger):
         seconds = 0.0
@@ -343,7 +343,7 @@ def _logging_share(make, batch, size, width, steps: int = 300) -> float:
         def __getitem__(self, i):
             return {k: v[i % v.shape[0]] for k, v in batch.items()}
 
-    with tempfile.TemporaryDirectory() as tmp:
+    with tempfile.TemporaryDirectory() as tmp, process_tracking_uri():  # the logger sets it process-wide
         tracker = Tracker(f"sqlite:///{tmp}/mlflow.db", "bench", f"{tmp}/artifacts")
         run_id = tracker.start("bench", {})
         logger = TimedLogger(tracking_uri=tracker.uri, run_id=run_id)

@@ -12,7 +12,7 @@ what a user would see, and stops the server::
     python -m demon_lab.dashboard --experiment iterations --screenshot docs/dashboard.png
 
 How MLflow 3.17's UI is told what to show (its source: ``mlflow/server/js/src/`` in mlflow/mlflow;
-checked against the 3.17.2 build this package installs):
+checked against MLflow 3.17.2's build):
 
 - columns, filter and order of the runs table: a *shared view*, what the UI's "share view" does:
   the experiment tag ``mlflow.sharedViewState.<key>`` holds the view state as JSON (search facets
@@ -324,7 +324,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--port", type=int, default=5000)
     parser.add_argument("--artifacts", type=Path, default=Path("mlartifacts"),
                         help="where runs of experiments created through this server keep artifacts")
-    parser.add_argument("--experiment", help="the experiment whose runs to show (default: the first with runs)")
+    parser.add_argument("--experiment",
+                        help="the experiment whose runs to show (default: the first one besides MLflow's Default)")
     parser.add_argument("--columns", default=",".join(KEY_METRICS),
                         help="comma-separated metrics shown as columns of the job runs (params.NAME, tags.NAME: "
                              "a param or tag; '': MLflow's own columns of every run); default: %(default)s")

@@ -19,7 +19,8 @@ from typing import Any
 from omegaconf import DictConfig, OmegaConf
 
 from demon_lab.config import ConfigError
-from demon_lab.validate import validate
+from demon_lab.metrics import UNITS_NOTE
+from demon_lab.validate import CHAIN_METHODS, validate
 
 log = logging.getLogger(__name__)
 
@@ -115,14 +116,15 @@ def _train_and_evaluate(cfg: DictConfig, tracker, run_id: str) -> dict[str, Any]
 
     from demon_lab.tracking import process_tracking_uri
 
-    needs_chain = cfg.method in ("demon", "base_mat_f")
+    needs_chain = cfg.method in CHAIN_METHODS
     try:
         with process_tracking_uri():  # MLFlowLogger sets it process-wide: keep it this job's business
             chain, stages, figures = (prepare_chain(cfg, on_stage, progress=sys.stderr.isatty()) if needs_chain
                                       else (None, [], {}))
     except BaseException as e:
-        for child in stage_runs:
-            tracker.fail(child, e)
+        for child in stage_runs:  # the stage that raised (its logger may have ended it FAILED), not the
+            if tracker.client.get_run(child).info.status != "FINISHED":  # stages that finished before it
+                tracker.fail(child, e)
         raise
     for child in stage_runs:
         tracker.finish(child)  # MLFlowLogger ends it FINISHED already; a no-op then
@@ -153,8 +155,9 @@ def _train_and_evaluate(cfg: DictConfig, tracker, run_id: str) -> dict[str, Any]
             if (root / name).exists():
                 tracker.log_artifact(run_id, root / name)
     tracker.log_text(run_id, table + "\n", "results.txt")
-    log.info("results (scale %s, seed %s, %s; depth metrics on unit-baseline depth, rot/tran in degrees, EPE in "
-             "normalised flow units):\n%s", cfg.scale.name, cfg.seed, what, table)
+    # the job's result: printed (not logged), so it shows whatever the logging configuration
+    print(f"[demon_lab] results (scale {cfg.scale.name}, seed {cfg.seed}, {what}; {UNITS_NOTE}):\n{table}\n",
+          flush=True)
     return {"summary": summary, "figures": figures}
 
 

@@ -369,7 +369,8 @@ class Column:
 
     ``key``: its name in MLflow (``test/<set>/<key>``) and in report specs; ``text``: the
     terminal tables' header (ASCII); ``label``: Markdown tables and figures; ``tex``: LaTeX;
-    ``paper``: its column in ``demon_lab/studies/paper_numbers.csv`` (None: the paper has none).
+    ``paper``: its column in ``demon_lab/studies/paper_numbers.csv`` (None: the paper has none);
+    ``unit``: what a figure's axis adds to the label (None: a count or a plain number).
     """
 
     key: str
@@ -377,18 +378,19 @@ class Column:
     label: str
     tex: str
     paper: str | None = None
+    unit: str | None = None
 
 
 COLUMNS: dict[str, Column] = {c.key: c for c in (
-    Column("l1_inv", "L1-inv", "L1-inv", "L1-inv", "L1-inv"),
-    Column("sc_inv", "sc-inv", "sc-inv", "sc-inv", "sc-inv"),
-    Column("l1_rel", "L1-rel", "L1-rel", "L1-rel", "L1-rel"),
-    Column("delta_1.25", "d<1.25", "δ<1.25", r"$\delta<1.25$", "delta<1.25"),
-    Column("delta_1.25_2", "d<1.25^2", "δ<1.25²", r"$\delta<1.25^2$", "delta<1.25^2"),
-    Column("delta_1.25_3", "d<1.25^3", "δ<1.25³", r"$\delta<1.25^3$", "delta<1.25^3"),
-    Column("rot_deg", "rot", "rot (°)", "rot", "rot"),
-    Column("tran_deg", "tran", "tran (°)", "tran", "tran"),
-    Column("epe", "EPE", "EPE", "EPE", "EPE"),
+    Column("l1_inv", "L1-inv", "L1-inv", "L1-inv", "L1-inv", "inverse depth, unit baseline"),
+    Column("sc_inv", "sc-inv", "sc-inv", "sc-inv", "sc-inv", "log depth, scale-invariant"),
+    Column("l1_rel", "L1-rel", "L1-rel", "L1-rel", "L1-rel", "relative to true depth"),
+    Column("delta_1.25", "d<1.25", "δ<1.25", r"$\delta<1.25$", "delta<1.25", "fraction of pixels"),
+    Column("delta_1.25_2", "d<1.25^2", "δ<1.25²", r"$\delta<1.25^2$", "delta<1.25^2", "fraction of pixels"),
+    Column("delta_1.25_3", "d<1.25^3", "δ<1.25³", r"$\delta<1.25^3$", "delta<1.25^3", "fraction of pixels"),
+    Column("rot_deg", "rot", "rot (°)", "rot", "rot", "rotation error, degrees"),
+    Column("tran_deg", "tran", "tran (°)", "tran", "tran", "translation direction error, degrees"),
+    Column("epe", "EPE", "EPE", "EPE", "EPE", "normalised flow units"),
     Column("n_failed", "failed", "failed", "failed"),
     # what python -m demon_lab.diagnose measures per pass (demon_lab/diagnose.py)
     Column("flow", "flow", "flow length", "flow length"),
@@ -400,6 +402,8 @@ COLUMNS: dict[str, Column] = {c.key: c for c in (
     Column("gt_rot_deg", "gt rot", "GT rot (°)", "GT rot"),
     Column("nonpositive_depth", "inv<=0", "share of inverse depth <= 0", r"inverse depth $\leq 0$"),
 )}
+UNITS_NOTE = "depth metrics on unit-baseline depth, rot/tran in degrees, EPE in normalised flow units"
+"""The units of the result tables, in one sentence (the main command's and the reports')."""
 RESULT_COLUMNS = ("l1_inv", "sc_inv", "l1_rel", "delta_1.25", "rot_deg", "tran_deg", "epe")
 """The columns of the main command's results table."""
 

@@ -36,7 +36,7 @@ import numpy as np
 import pandas as pd
 import yaml
 
-from demon_lab.metrics import column
+from demon_lab.metrics import UNITS_NOTE, column
 from demon_lab.resources import STUDIES
 from demon_lab.tracking import TAG, metric_name, process_tracking_uri, version_tags
 
@@ -329,8 +329,7 @@ def write_markdown(spec, result, info, failed: pd.DataFrame, paper_rows) -> str:
       + f" (or both at once: `{report_cmd} --run`)\n")
     w("- cells: mean ± 95 % confidence half-width (t-interval over seeds), n = seeds (a cell marked "
       "(n = k) has fewer: the other seeds' runs logged no finite value there, e.g. no pixel of positive "
-      "depth); "
-      "depth metrics on unit-baseline depth, rot/tran in degrees, EPE in normalised flow units\n")
+      f"depth); {UNITS_NOTE}\n")
     if spec.get("paper_note"):
         w(f"- paper: {spec['paper_note']}\n")
     w("\n")

@@ -22,18 +22,13 @@ import pandas as pd
 
 from demon_lab.metrics import column
 from demon_lab.report import cell, has_values, paper_cells
-
-UNITS = {"l1_inv": "inverse depth, unit baseline", "sc_inv": "log depth, scale-invariant",
-         "l1_rel": "relative to true depth", "delta_1.25": "fraction of pixels", "delta_1.25_2": "fraction of pixels",
-         "delta_1.25_3": "fraction of pixels", "epe": "normalised flow units"}
-"""What the figures' axes add to ``metrics.column(key).label``: its unit (the table names quantities only)."""
-MOTION_AXES = {"rot_deg": "rotation error (°)", "tran_deg": "translation direction error (°)"}
+from demon_lab.visualize import safe_name
 
 
 def _axis(key: str) -> str:
-    if key in MOTION_AXES:
-        return MOTION_AXES[key]
-    return f"{column(key).label} ({UNITS[key]})" if key in UNITS else column(key).label
+    """A figure axis: the metric's label and its unit (``metrics.COLUMNS``)."""
+    c = column(key)
+    return f"{c.label} ({c.unit})" if c.unit else c.label
 
 
 def local_artifact(run: Mapping[str, Any], path: str) -> Path | None:
@@ -90,7 +85,7 @@ def figure_iterations(spec, result, paper_rows, path: Path) -> list[Path]:
         if any(math.isfinite(p) for p in paper):
             ax.plot(iterations, paper, "k--", marker="s", ms=3, label="paper (SUN3D)")
         ax.set_title(column(c).label)
-        ax.set_xlabel("iteration (pass of the iterative net)")
+        ax.set_xlabel("pass (0: bootstrap net, k: k-th iterative pass)")
         ax.set_xticks(iterations)
         ax.set_ylabel(_axis(c), fontsize=8)
         ax.grid(alpha=0.3)
@@ -199,7 +194,7 @@ def figure_qualitative(spec, result, path: Path, per_row_limit: int = 1) -> list
         if images is None:
             continue
         for dataset in spec["datasets"]:
-            safe = "".join(c if c.isalnum() or c in "-_" else "_" for c in dataset)
+            safe = safe_name(dataset)  # the name visualize.save_visuals gives the set's pictures
             found = sorted(images.glob(f"{safe}_0_*.png"))[:per_row_limit]
             for f in found:
                 row_safe = "".join(c if c.isalnum() else "_" for c in label)

@@ -77,6 +77,10 @@ def flatten(d: Mapping[str, Any], prefix: str = "") -> dict[str, str]:
 def git_state() -> dict[str, str]:
     try:
         here = Path(__file__).resolve().parent
+        tracked = subprocess.run(["git", "ls-files", "--error-unmatch", "__init__.py"], cwd=here,
+                                 capture_output=True, text=True, timeout=5)
+        if tracked.returncode != 0:  # an installed package (inside some other repository, perhaps)
+            return {"git_commit": "unknown", "git_dirty": "unknown"}
         commit = subprocess.run(["git", "rev-parse", "HEAD"], cwd=here, capture_output=True, text=True,
                                 timeout=5).stdout.strip()
         dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=here,

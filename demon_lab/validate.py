@@ -59,11 +59,25 @@ def _source_key(node: DictConfig, key: str, where: str) -> str:
     return where
 
 
+CHAIN_METHODS = ("demon", "base_mat_f")
+"""The methods that run the DeMoN chain (``base_mat_f`` reads its flow): they train what the stage
+cache lacks."""
+
+
+def _trains(cfg: DictConfig) -> bool:
+    """Whether the job will train a stage (and so read its training data)."""
+    if not (cfg.train and cfg.method in CHAIN_METHODS):
+        return False
+    from demon_lab.stages.schedule import stage_dirs
+
+    return not all(stage.done() for stage in stage_dirs(cfg))
+
+
 def check_paths(cfg: DictConfig) -> None:
     """Every file or folder the job reads exists: its test sets, and its training sets when it
-    trains. Checked before any rendering, training or tracking."""
+    trains a stage the cache lacks. Checked before any rendering, training or tracking."""
     sources = [(f"data.test[{i}]", entry) for i, entry in enumerate(cfg.data.test)]
-    if cfg.train and cfg.method in ("demon", "base_mat_f"):
+    if _trains(cfg):
         sources += [(f"data.train[{i}].dataset", entry.dataset) for i, entry in enumerate(cfg.data.train)]
     for where, node in sources:
         for key in PATH_KEYS:

@@ -85,7 +85,8 @@ def sample_figure(sample: Mapping[str, Any], title: str, out: Path) -> Path:
         if style:
             bar = fig.colorbar(shown, ax=ax, fraction=0.046, pad=0.02)
             bar.ax.tick_params(labelsize=6)
-            bar.set_label("1 / depth (unit baseline)", fontsize=6)
+            bar.set_label("|difference| of 1 / depth" if name.startswith("|error|") else "1 / depth (unit baseline)",
+                          fontsize=6)
     fig.suptitle(title, fontsize=9)
     fig.tight_layout()
     out.parent.mkdir(parents=True, exist_ok=True)

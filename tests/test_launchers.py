@@ -1,5 +1,5 @@
 """Every documented sweep composes with every launcher (nothing is submitted), output folders are
-deterministic, and site settings from conf/local/ reach the SLURM launchers."""
+deterministic, and site settings (local/slurm.yaml on hydra.searchpath) reach the SLURM launchers."""
 
 from __future__ import annotations
 
@@ -46,7 +46,7 @@ def test_every_job_of_every_documented_sweep_composes_with_every_launcher(launch
         assert len(subdirs) == len(jobs)  # each job its own folder, the same on every re-issue
 
 
-def test_site_settings_from_conf_local_reach_the_slurm_launchers(tmp_path):
+def test_site_settings_on_the_search_path_reach_the_slurm_launchers(tmp_path):
     (tmp_path / "local").mkdir()
     (tmp_path / "local" / "slurm.yaml").write_text("partition: site_gpu\naccount: lab42\n")
     for launcher in ("slurm", "slurm_ddp"):
@@ -55,7 +55,7 @@ def test_site_settings_from_conf_local_reach_the_slurm_launchers(tmp_path):
                           return_hydra_config=True)
             assert cfg.hydra.launcher.partition == "site_gpu" and cfg.hydra.launcher.account == "lab42"
             plain = compose("config", overrides=[f"hydra/launcher={launcher}"], return_hydra_config=True)
-            assert plain.hydra.launcher.partition is None  # without conf/local/slurm.yaml: submitit's defaults
+            assert plain.hydra.launcher.partition is None  # without local/slurm.yaml: submitit's defaults
 
 
 def test_output_folders_name_the_overrides_not_the_tracking_or_cache(tmp_path):

@@ -177,6 +177,10 @@ def test_a_job_that_raises_leaves_its_run_failed(tmp_path):
     assert len(job) == 1 and job[0].info.status == "FAILED"
     assert "not_a_pair" in job[0].data.tags["demon_lab.error"]
     assert all(r.info.status != "RUNNING" for r in runs)
+    # its stages trained and were cached before the evaluation failed: their runs stay FINISHED
+    stages = c.search_runs([c.get_experiment_by_name("default").experiment_id],
+                           filter_string=f"tags.`mlflow.parentRunId` = '{job[0].info.run_id}'")
+    assert len(stages) == 6 and all(r.info.status == "FINISHED" for r in stages)
 
 
 @pytest.mark.parametrize("args, message", [

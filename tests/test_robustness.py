@@ -333,3 +333,18 @@ def test_sweep_key_follows_what_the_jobs_compute_and_the_versions(monkeypatch):
     assert key("seed=0,1,2", "+experiment=study") != base
     monkeypatch.setattr(synthetic, "GENERATOR_VERSION", synthetic.GENERATOR_VERSION + 1)
     assert key("seed=0,1", "+experiment=study") != base  # new scenes: a new parent run
+
+
+def test_a_stage_that_diverges_fails_its_own_run_not_the_finished_stages_before_it(tmp_path):
+    """flow1 trains and is cached, dm1's loss turns NaN: the job and dm1's stage run are FAILED with
+    the error, flow1's stage run stays FINISHED (Lightning's logger ended it so)."""
+    result = cli(*smoke_overrides(tmp_path), "scale.steps.dm1=4", "schedule.stages.dm1.lr=1e30", cwd=tmp_path)
+    assert result.returncode == 2 and "stage dm1: non-finite loss" in result.stderr, result.stderr[-2000:]
+    c = client(tmp_path)
+    runs = c.search_runs([c.get_experiment_by_name("default").experiment_id])
+    stages = {r.data.tags["demon_lab.stage"]: r for r in runs if r.data.tags.get("demon_lab.kind") == "stage"}
+    assert set(stages) == {"flow1", "dm1"}
+    assert stages["flow1"].info.status == "FINISHED" and "demon_lab.error" not in stages["flow1"].data.tags
+    assert stages["dm1"].info.status == "FAILED" and "non-finite loss" in stages["dm1"].data.tags["demon_lab.error"]
+    (job,) = [r for r in runs if "demon_lab.run_key" in r.data.tags]
+    assert job.info.status == "FAILED"

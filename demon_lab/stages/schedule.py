@@ -18,7 +18,6 @@ from demon_lab.identity import stage_key
 from demon_lab.nets.chain import DeMoN
 from demon_lab.stages.cache import CheckpointError, StageDir
 
-STAGE_ORDER = ("flow1", "dm1", "flow2", "dm2", "iterative", "refine")
 TRAINED_NETS = {"flow1": ["flow1"], "dm1": ["dm1"], "flow2": ["flow2"], "dm2": ["dm2"],
                 "iterative": ["flow2", "dm2"], "refine": ["refine_net"]}
 """The chain's nets (attributes of :class:`demon_lab.nets.DeMoN`) each stage trains and stores."""
