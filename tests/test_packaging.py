@@ -13,8 +13,11 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-OUTSIDE = re.compile(r"\.\./shared|shared/data|DEMON_REFERENCE|DESIGN\.md|STACK\.md|STYLE\.md|parents\[2\]|"
-                     r"\.parent\.parent|spec section|spec §")
+# The names of the documents beside the project's checkout, and the path tricks that reach them,
+# written in pieces so that this file does not itself cite them.
+_BESIDE = ("../" + "sha" + "red", "sha" + "red/data", "DEMON_" + "REFERENCE", "DES" + "IGN.md", "STA" + "CK.md",
+           "STY" + "LE.md", "parents" + "[2]", ".parent" + ".parent", "sp" + "ec section", "sp" + "ec §")
+OUTSIDE = re.compile("|".join(re.escape(word) for word in _BESIDE))
 
 
 def _tracked(*patterns: str) -> list[Path]:
@@ -25,7 +28,7 @@ def _tracked(*patterns: str) -> list[Path]:
 def test_no_file_reads_or_cites_anything_beside_the_repository():
     files = _tracked("*.py", "*.yaml", "*.toml", "*.md", "*.csv", ".ci/*")
     assert len(files) > 50
-    hits = [f"{f.relative_to(ROOT)}:{n}: {line.strip()}" for f in files if f.name != "test_packaging.py"
+    hits = [f"{f.relative_to(ROOT)}:{n}: {line.strip()}" for f in files
             for n, line in enumerate(f.read_text(errors="replace").splitlines(), 1) if OUTSIDE.search(line)]
     assert hits == []
 
