@@ -49,7 +49,7 @@ def check(args: list[str]) -> str | None:
     from hydra.errors import HydraException
     from omegaconf.errors import OmegaConfBaseException
 
-    from demon_lab.config import ConfigError
+    from demon_lab.config import ConfigError, drop_missing_sources
     from demon_lab.stages.training import processes_launched_outside, world_size
     from demon_lab.validate import validate
 
@@ -63,6 +63,7 @@ def check(args: list[str]) -> str | None:
         for overrides in jobs:
             try:
                 cfg = compose("config", overrides=overrides)
+                drop_missing_sources(cfg)
                 validate(cfg)
                 if multirun and launcher != "slurm_ddp" and world_size(cfg) > 1 and not processes_launched_outside():
                     # Lightning's launcher starts each extra process by re-running the command line:

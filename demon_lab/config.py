@@ -37,6 +37,41 @@ class ConfigError(ValueError):
     """A bad configuration value: the message names the key and what is allowed (one line)."""
 
 
+def drop_missing_sources(cfg: Any) -> list[str]:
+    """Remove the data sources marked ``optional: true`` whose ``path`` does not exist, and the
+    ``optional`` marks (DeMoN's files under ``data.root``: whichever are present). The training
+    sources only when the job trains (``train=true``). Returns one line per split that lost
+    sources, naming them; ConfigError when a split loses all of them."""
+    from pathlib import Path
+
+    from omegaconf import OmegaConf, open_dict
+
+    notes = []
+    splits = [("test", lambda e: e)] + ([("train", lambda e: e.dataset)] if cfg.get("train", True) else [])
+    for split, source_of in splits:
+        entries = cfg.data.get(split)
+        if not entries or not any(source_of(e).get("optional", False) for e in entries):
+            continue
+        kept, missing = [], []
+        for entry in entries:
+            source = source_of(entry)
+            if source.get("optional", False) and not Path(str(source.path)).exists():
+                missing.append(str(source.path))
+            else:
+                kept.append(entry)
+        if not kept:
+            folder = str(Path(missing[0]).parent)
+            names = ", ".join(Path(m).name for m in missing)
+            raise ConfigError(f"data.{split}: none of its files is present in {folder} (looked for {names})")
+        with open_dict(cfg):
+            cfg.data[split] = OmegaConf.create([OmegaConf.to_container(e, resolve=False) for e in kept])
+            for entry in cfg.data[split]:
+                source_of(entry).pop("optional", None)
+        if missing:
+            notes.append(f"data.{split}: not found, skipped: {', '.join(missing)}")
+    return notes
+
+
 def _check_targets(node: Any, path: str = "") -> None:
     from omegaconf import DictConfig, ListConfig
 
@@ -60,6 +95,10 @@ def instantiate(cfg: Any, **kwargs: Any) -> Any:
 
     if not isinstance(cfg, DictConfig | ListConfig):
         cfg = OmegaConf.create(cfg)
+    if isinstance(cfg, DictConfig) and "optional" in cfg:  # a data source's mark, not an argument
+        plain = OmegaConf.to_container(cfg, resolve=True)
+        plain.pop("optional")
+        cfg = OmegaConf.create(plain)
     _check_targets(cfg)
     try:
         return hydra_instantiate(cfg, **kwargs)

@@ -64,7 +64,7 @@ def diagnose_batch(chain, batch: dict, iterations: int, refine: bool = False) ->
             if k == 0:
                 p, prior = chain.bootstrap(pair, image2_2, K), None
             else:
-                prior = flow_net_inputs(image2_2, prev.inv_depth, prev.normals, prev.motion, K)[:, 3:5]
+                prior = flow_net_inputs(image2_2, prev.inv_depth, prev.normals, prev.motion, K, chain.compat)[:, 3:5]
                 p = chain.iterate(pair, image2_2, K, prev)
             nan = torch.full((pair.shape[0],), math.nan)
             row = {

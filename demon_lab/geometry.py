@@ -379,8 +379,9 @@ def warp_image(image: Tensor, flow: Tensor) -> Tensor:
     all four bilinear neighbours lie inside the image (no blending with the border); NaN flow
     gives 0. Since images live in [-0.5, 0.5], 0 is mid grey.
 
-    One deliberate difference from DeMoN's CPU kernel: it truncates sample positions toward zero,
-    so for -1 < p < 0 it extrapolates linearly from pixels 0 and 1; here the neighbours are
+    One deliberate difference from DeMoN's kernel (:func:`warp2d`, used under
+    ``model.compat=demon_original``): it truncates sample positions toward zero, so for
+    -1 < p < 0 it extrapolates linearly from pixels 0 and 1; here the neighbours are
     ``floor(p)``, ``floor(p) + 1`` and such samples are outside (0), which is what the
     all-four-neighbours rule means. The two agree everywhere else.
 
@@ -413,6 +414,47 @@ def warp_image(image: Tensor, flow: Tensor) -> Tensor:
     grid = torch.addcmul(base, flow.permute(0, 2, 3, 1), flow.new_tensor(2.0))
     return F.grid_sample(image, grid.to(image.dtype), mode="bilinear", padding_mode="zeros",
                          align_corners=False)
+
+
+def warp2d(image: Tensor, flow: Tensor) -> Tensor:
+    """DeMoN's ``warp2d`` exactly (lmbspecialops' `src/warp2d.cc`, as DeMoN's graph calls it:
+    ``normalized=True, border_mode='value'``, border value 0); ``model.compat=demon_original``.
+
+    The sample position ``p = x + W fx`` (likewise y) is truncated toward zero, ``x0 = trunc(p)``,
+    with weights ``a = p - x0``; the sample is valid only when ``x0 >= 0``, ``x0 + 1 < W``,
+    ``y0 >= 0`` and ``y0 + 1 < H``, and 0 otherwise (NaN flow: 0). For ``-1 < p < 0`` this takes
+    pixels 0 and 1 with a negative weight, i.e. extrapolates; :func:`warp_image` (demon_lab's
+    default) gives 0 there (docs/reference.md §10 lists the differences between the two modes).
+
+    Args and returns: as :func:`warp_image`.
+    """
+    if not isinstance(image, torch.Tensor) or image.dim() != 4:
+        raise ValueError(f"image: expected shape (B, C, H, W), "
+                         f"got {tuple(getattr(image, 'shape', ()))}")
+    _check_map("flow", flow, 2)
+    batch, channels, height, width = image.shape
+    if flow.shape[0] != batch or flow.shape[2:] != image.shape[2:]:
+        raise ValueError(f"flow: expected shape ({batch}, 2, {height}, {width}) to match image, "
+                         f"got {tuple(flow.shape)}")
+    flow = flow.to(image.dtype)
+    xs = torch.arange(width, dtype=image.dtype, device=image.device).view(1, 1, width)
+    ys = torch.arange(height, dtype=image.dtype, device=image.device).view(1, height, 1)
+    px, py = xs + flow[:, 0] * width, ys + flow[:, 1] * height  # the kernel's p1 + v, v scaled first
+    x0, y0 = torch.trunc(px), torch.trunc(py)
+    a, b = px - x0, py - y0
+    valid = (x0 >= 0) & (x0 + 1 < width) & (y0 >= 0) & (y0 + 1 < height)  # False for NaN
+    zero = torch.zeros_like(x0)
+    ix, iy = torch.where(valid, x0, zero).long(), torch.where(valid, y0, zero).long()
+    flat = image.reshape(batch, channels, height * width)
+
+    def corner(dy: int, dx: int) -> Tensor:
+        index = ((iy + dy) * width + ix + dx).clamp(max=height * width - 1).view(batch, 1, -1)
+        return flat.gather(2, index.expand(-1, channels, -1)).view(batch, channels, height, width)
+
+    a, b = a.unsqueeze(1), b.unsqueeze(1)
+    out = ((1 - a) * (1 - b) * corner(0, 0) + a * (1 - b) * corner(0, 1)
+           + (1 - a) * b * corner(1, 0) + a * b * corner(1, 1))
+    return torch.where(valid.unsqueeze(1), out, torch.zeros_like(out))
 
 
 # ----------------------------------------------------------------------------- normals

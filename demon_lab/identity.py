@@ -68,6 +68,16 @@ def _portable(value: Any) -> Any:
     return value
 
 
+def model_identity(model: dict[str, Any]) -> dict[str, Any]:
+    """A plain ``model`` config with ``weights`` named by the file's content (``sha256:...``), not
+    its path: a moved file keeps its keys, a changed one gets new ones."""
+    if not model.get("weights"):
+        return model
+    from demon_lab.weights import describe
+
+    return {**model, "weights": describe(model["weights"])}
+
+
 def semantic_config(cfg) -> dict[str, Any]:
     """The resolved config as plain containers, without the :data:`NON_SEMANTIC` keys, with
     bundled files named rather than located (:func:`_portable`)."""
@@ -82,6 +92,8 @@ def semantic_config(cfg) -> dict[str, Any]:
             node = node.get(p, {})
         if isinstance(node, dict):
             node.pop(leaf, None)
+    if isinstance(plain.get("model"), dict):
+        plain["model"] = model_identity(plain["model"])
     return _portable(plain)
 
 

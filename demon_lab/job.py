@@ -46,6 +46,10 @@ def job_tags(cfg: DictConfig, key: str) -> dict[str, str]:
 
 def run(cfg: DictConfig) -> dict[str, Any]:
     """One job. Returns {'status': 'finished'|'skipped'|'worker', 'run_id': ..., 'summary': ...}."""
+    from demon_lab.config import drop_missing_sources
+
+    for note in drop_missing_sources(cfg):
+        log.info("%s", note)
     validate(cfg)
     if cfg.get("threads") is not None:
         set_threads(int(cfg.threads))

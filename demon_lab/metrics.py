@@ -232,11 +232,16 @@ def mask_invisible(
     return np.where(visible, d, np.nan)
 
 
+EIGEN_CROP = (slice(23, 23 + 436), slice(27, 27 + 588))
+"""Eigen's NYU evaluation crop of 480x640 maps (DeMoN's ``eigen_crop_gt_and_pred``)."""
+
+
 def evaluate_sample(
     pred: Mapping[str, Any],
     gt: Mapping[str, Any],
     depthmask: bool = True,
     scaling: str | None = None,
+    eigen_crop: bool = False,
 ) -> dict[str, float]:
     """Score one prediction the way DeMoN's ``examples/evaluation.py`` does.
 
@@ -248,15 +253,23 @@ def evaluate_sample(
             (default: computed from the GT depth and motion).
         depthmask: apply DeMoN's ``depthmask`` rule to the GT depth (its paper-style numbers).
         scaling: forwarded to :func:`depth_errors`.
+        eigen_crop: score the depth on Eigen's crop of 480x640 ground truth (:data:`EIGEN_CROP`,
+            after the upsampling), as DeMoN's evaluation does for NYU.
+
+    GT motion that is not finite (a source without camera poses, DeMoN's NYU pairs) scores the
+    depth only, with a unit baseline and without the depthmask rule, as DeMoN's ``evaluate`` does.
 
     Returns:
         The depth metrics, plus the motion metrics when ``pred`` has ``motion`` and ``epe`` when
-        it has ``flow``.
+        it has ``flow`` (and the GT motion is known).
     """
     gt_motion = _as_f64("gt['motion']", gt["motion"], (6,))
+    known = bool(np.isfinite(gt_motion).all())
+    pred_depth, gt_depth = _paired_depths(pred, gt, depthmask and known, eigen_crop)
+    out: dict[str, float] = dict(depth_errors(pred_depth, gt_depth, gt_motion[3:] if known else None, scaling))
+    if not known:
+        return out
     intrinsics = _as_f64("gt['intrinsics']", gt.get("intrinsics", geometry.DEMON_INTRINSICS), (4,))
-    pred_depth, gt_depth = _paired_depths(pred, gt, depthmask)
-    out: dict[str, float] = dict(depth_errors(pred_depth, gt_depth, gt_motion[3:], scaling))
     if "motion" in pred and pred["motion"] is not None:
         out.update(motion_errors(pred["motion"], gt_motion))
     if "flow" in pred and pred["flow"] is not None:
@@ -272,29 +285,38 @@ def evaluate_sample(
     return out
 
 
-def _paired_depths(pred: Mapping[str, Any], gt: Mapping[str, Any], depthmask: bool) -> tuple[np.ndarray, np.ndarray]:
-    """Predicted and GT absolute depth on the GT grid, NaN where either is invalid (the pixels
-    :func:`evaluate_sample` scores)."""
+def _paired_depths(pred: Mapping[str, Any], gt: Mapping[str, Any], depthmask: bool,
+                   eigen_crop: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """Predicted and GT absolute depth on the GT grid (Eigen's crop of it with ``eigen_crop``),
+    NaN where either is invalid (the pixels :func:`evaluate_sample` scores)."""
     gt_inv = _as_f64("gt['inv_depth']", gt["inv_depth"], (None, None))
-    gt_motion = _as_f64("gt['motion']", gt["motion"], (6,))
-    intrinsics = _as_f64("gt['intrinsics']", gt.get("intrinsics", geometry.DEMON_INTRINSICS), (4,))
     if depthmask:
+        gt_motion = _as_f64("gt['motion']", gt["motion"], (6,))
+        intrinsics = _as_f64("gt['intrinsics']", gt.get("intrinsics", geometry.DEMON_INTRINSICS), (4,))
         gt_inv = mask_invisible(gt_inv, gt_motion, intrinsics)
     pred_inv = resize_nearest(_as_f64("pred['inv_depth']", pred["inv_depth"], (None, None)),
                               gt_inv.shape)
+    if eigen_crop:
+        if gt_inv.shape != (480, 640):
+            raise ValueError(f"eigen_crop: Eigen's crop needs 480x640 ground truth, got {gt_inv.shape[1]}x"
+                             f"{gt_inv.shape[0]}")
+        gt_inv, pred_inv = gt_inv[EIGEN_CROP], pred_inv[EIGEN_CROP]
     with np.errstate(divide="ignore", invalid="ignore"):
         # Valid pixels are decided on the inverse depths (both finite and > 0), then inverted.
         valid = np.isfinite(gt_inv) & (gt_inv > 0) & np.isfinite(pred_inv) & (pred_inv > 0)
         return np.where(valid, 1.0 / pred_inv, np.nan), np.where(valid, 1.0 / gt_inv, np.nan)
 
 
-def pixel_depth_errors(pred: Mapping[str, Any], gt: Mapping[str, Any], depthmask: bool = True) -> dict[str, np.ndarray]:
+def pixel_depth_errors(pred: Mapping[str, Any], gt: Mapping[str, Any], depthmask: bool = True,
+                       eigen_crop: bool = False) -> dict[str, np.ndarray]:
     """Per-pixel ``l1_inv`` and ``l1_rel`` (1-D arrays over the scored pixels) for the error
     histograms of the supplementary's Figure 6; their means are :func:`evaluate_sample`'s."""
-    p, g = _paired_depths(pred, gt, depthmask)
+    gt_motion = _as_f64("gt['motion']", gt["motion"], (6,))
+    known = bool(np.isfinite(gt_motion).all())
+    p, g = _paired_depths(pred, gt, depthmask and known, eigen_crop)
     valid = np.isfinite(p) & np.isfinite(g)
     p, g = p[valid], g[valid]
-    norm = float(np.linalg.norm(_as_f64("gt['motion']", gt["motion"], (6,))[3:]))
+    norm = float(np.linalg.norm(gt_motion[3:])) if known else 1.0
     if not np.isclose(norm, 1.0):
         g = g / norm
     return {"l1_inv": np.abs(1.0 / p - 1.0 / g), "l1_rel": np.abs(p - g) / g}

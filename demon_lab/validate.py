@@ -86,6 +86,28 @@ def check_paths(cfg: DictConfig) -> None:
                                   f"directory")
 
 
+def _model_files(cfg: DictConfig) -> None:
+    """``model.compat`` and ``model.weights``: the file exists and fits the chain the config builds."""
+    from demon_lab.nets.chain import COMPATS
+
+    _choice("model.compat", cfg.model.get("compat"), COMPATS)
+    if cfg.model.get("compat") == "demon_original" and cfg.model.variant != "v1":
+        raise ConfigError("model.compat: demon_original reproduces DeMoN's released v1 graph; it needs "
+                          f"model.variant=v1, got {cfg.model.variant}")
+    weights = cfg.model.get("weights")
+    if not weights:
+        return
+    if cfg.method not in CHAIN_METHODS:
+        raise ConfigError(f"model.weights: method={cfg.method} runs no DeMoN chain; leave model.weights unset")
+    if not Path(str(weights)).is_file():
+        raise ConfigError(f"model.weights: {weights}: no such file")
+    from demon_lab.weights import check_fits
+
+    why = check_fits(weights, cfg.model.variant, float(cfg.model.width), tuple(cfg.data.size))
+    if why:
+        raise ConfigError(f"model.weights: {why}")
+
+
 TRACKING_SCHEMES = ("sqlite", "http", "https", "postgresql", "mysql", "mssql", "file", "databricks")
 METHODS = ("demon", *BASELINES)
 
@@ -132,6 +154,7 @@ def validate(cfg: DictConfig) -> None:
         raise ConfigError(f"data.size: expected [H, W] with sides positive multiples of 32, got {size}")
     _int("data.batch_size", cfg.data.batch_size, 1)
     _int("data.num_workers", cfg.data.num_workers, 0)
+    _model_files(cfg)
     if not cfg.data.train:
         raise ConfigError("data.train: expected at least one training source")
     _choice("schedule.lr_schedule", cfg.schedule.lr_schedule, LR_SCHEDULES)

@@ -14,6 +14,7 @@ Each class also carries the supplementary's Table 1 metadata (``perfect_gt``, ``
 from __future__ import annotations
 
 import dataclasses
+import math
 import os
 from collections.abc import Sequence
 from pathlib import Path
@@ -45,6 +46,9 @@ class PairDataset(torch.utils.data.Dataset):
         normalize_translation: bool = True,
         augment: bool = False,
         seed: int = 0,
+        gt_size: Sequence[int] | None = None,
+        depthmask: bool = True,
+        eigen_crop: bool = False,
     ):
         """
         Args:
@@ -55,12 +59,25 @@ class PairDataset(torch.utils.data.Dataset):
                 prediction convention); ``baseline`` keeps the original |t|.
             augment: DeMoN's augmentation (180-degree rotation, mirror, p = 0.5 each) on draws.
             seed: seed of the augmentation draws.
+            gt_size: (H, W) of the ground truth the evaluation scores against (``gt_inv_depth``,
+                ``gt_flow``, ``gt_intrinsics`` of each sample, resampled from the native sample as
+                the inputs are); None: the inputs' own. DeMoN's evaluation scores at 480x640.
+            depthmask, eigen_crop: the evaluation protocol of this set (:func:`demon_lab.metrics.
+                evaluate_sample`): DeMoN's ``depthmask`` rule; Eigen's NYU crop of 480x640
+                ground truth (needs ``gt_size=[480, 640]``).
         """
         self.size = None if size is None else (int(size[0]), int(size[1]))
         self.fixed_intrinsics = fixed_intrinsics
         self.normalize_translation = normalize_translation
         self.augment = augment
         self.seed = seed
+        self.gt_size = None if gt_size is None else (int(gt_size[0]), int(gt_size[1]))
+        if self.gt_size is not None and augment:
+            raise ValueError("gt_size: evaluation ground truth at its own size cannot be augmented (augment=false)")
+        if eigen_crop and self.gt_size != (480, 640):
+            raise ValueError(f"eigen_crop: Eigen's crop is defined on 480x640 ground truth; set gt_size=[480, 640], "
+                             f"got {self.gt_size}")
+        self.depthmask, self.eigen_crop = bool(depthmask), bool(eigen_crop)
 
     name = "pairs"
 
@@ -75,15 +92,28 @@ class PairDataset(torch.utils.data.Dataset):
         index, draw = (key, None) if isinstance(key, int | np.integer) else key
         if not 0 <= index < len(self):
             raise IndexError(f"{self.name}: index {index} out of range 0..{len(self) - 1}")
-        sample = self.load(int(index))
-        sample.pop("meta", None)
-        target = smp.geo.DEMON_INTRINSICS if self.fixed_intrinsics else None
-        if self.size is not None and (tuple(sample["image1"].shape[1:]) != self.size or target):
-            sample = smp.resample(sample, self.size, target)
-        if self.normalize_translation:
-            sample = smp.normalize_translation(sample)
+        native = self.load(int(index))
+        native.pop("meta", None)
+        unknown_motion = native.pop("motion_unknown", False)
+        sample = self._prepare(native, self.size)
+        if self.gt_size is not None:
+            truth = sample if self.gt_size == tuple(sample["image1"].shape[1:]) else self._prepare(native, self.gt_size)
+            sample.update(gt_inv_depth=truth["inv_depth"], gt_flow=truth["flow"], gt_intrinsics=truth["intrinsics"])
         if self.augment and draw is not None:
             sample = smp.augment(sample, np.random.default_rng([self.seed, int(draw)]))
+        if unknown_motion:  # a source without camera poses (DeMoN's nyu2_test.h5): no motion, no flow
+            sample["motion"] = torch.full_like(sample["motion"], math.nan)
+            for key in ("flow", "gt_flow"):
+                if key in sample:
+                    sample[key] = torch.full_like(sample[key], math.nan)
+        return sample
+
+    def _prepare(self, sample: smp.Sample, size: tuple[int, int] | None) -> smp.Sample:
+        target = smp.geo.DEMON_INTRINSICS if self.fixed_intrinsics else None
+        if size is not None and (tuple(sample["image1"].shape[1:]) != size or target):
+            sample = smp.resample(sample, size, target)
+        if self.normalize_translation:
+            sample = smp.normalize_translation(sample)
         return sample
 
 

@@ -29,6 +29,8 @@ from demon_lab.nets.flow_net import FlowNet
 from demon_lab.nets.refine_net import RefineNet
 
 ORACLES = (None, "flow", "depth_motion")
+COMPATS = (None, "demon_original")
+"""``DeMoN(compat=...)``: None (demon_lab's inputs, docs/reference.md §10) or DeMoN's released graph exactly."""
 
 
 @dataclass
@@ -78,26 +80,39 @@ def ground_truth_inputs(gt: dict, intrinsics: torch.Tensor) -> GroundTruthInputs
 
 
 def flow_net_inputs(image2_2: torch.Tensor, inv_depth: torch.Tensor, normals: torch.Tensor,
-                    motion: torch.Tensor, intrinsics: torch.Tensor) -> torch.Tensor:
+                    motion: torch.Tensor, intrinsics: torch.Tensor, compat: str | None = None) -> torch.Tensor:
     """The iterative flow net's 9 extra channels (stop-gradient): image 2 warped with the flow of
     the previous depth+motion, that flow (vectors of norm >= 1, and NaN, set to 0), the previous
-    inverse depth and normals."""
+    inverse depth and normals (non-finite values set to 0; ``compat="demon_original"``: as they
+    are, and DeMoN's ``warp2d``, as ``flow_block_demon_original`` does)."""
+    original = compat == "demon_original"
     with torch.no_grad():
         flow = geo.flow_from_depth_motion(inv_depth, motion, intrinsics)
         keep = (flow.norm(dim=1, keepdim=True) < 1)  # False for NaN
         flow = torch.where(keep, flow, torch.zeros_like(flow))
-        warped = geo.warp_image(image2_2, flow)
+        warped = (geo.warp2d if original else geo.warp_image)(image2_2, flow)
+        if original:
+            return torch.cat([warped, flow, inv_depth, normals], 1)
         return torch.cat([warped, flow, finite(inv_depth), finite(normals)], 1)
 
 
 def depth_motion_net_inputs(image2_2: torch.Tensor, flow: torch.Tensor, conf: torch.Tensor,
-                            prev_motion: torch.Tensor | None, intrinsics: torch.Tensor) -> torch.Tensor:
+                            prev_motion: torch.Tensor | None, intrinsics: torch.Tensor,
+                            compat: str | None = None) -> torch.Tensor:
     """The depth-motion net's extra channels (stop-gradient): image 2 warped with the flow, the
     flow and its confidence, and (iterative net) the inverse depth triangulated from the flow with
-    the previous motion, clipped to [0, 50] as v2 does. demon_lab clips for v1 too: it trains v1
-    from scratch, and an untrained flow net's triangulated inverse depth reaches the thousands
-    (measured: max 1107, 99th percentile 28 on the cpu-scale test scenes), which destabilises dm2."""
+    the previous motion, clipped to [0, 50] as v2 does; non-finite values set to 0. demon_lab
+    clips for v1 too: it trains v1 from scratch, and an untrained flow net's triangulated inverse
+    depth reaches the thousands (measured: max 1107, 99th percentile 28 on the cpu-scale test
+    scenes), which destabilises dm2. ``compat="demon_original"``: what
+    ``depthmotion_block_demon_original`` feeds its net, i.e. DeMoN's ``warp2d``, no clipping and
+    the flow and confidence as they are."""
     with torch.no_grad():
+        if compat == "demon_original":
+            parts = [geo.warp2d(image2_2, flow), flow, conf]
+            if prev_motion is not None:
+                parts.append(geo.depth_from_flow_motion(flow, prev_motion, intrinsics))
+            return torch.cat(parts, 1)
         flow = finite(flow)
         parts = [geo.warp_image(image2_2, flow), flow, finite(conf)]
         if prev_motion is not None:
@@ -106,15 +121,23 @@ def depth_motion_net_inputs(image2_2: torch.Tensor, flow: torch.Tensor, conf: to
 
 
 class DeMoN(nn.Module):
-    """The whole chain. ``size`` is the input (H, W): sides multiples of 32."""
+    """The whole chain. ``size`` is the input (H, W): sides multiples of 32. ``compat``: None
+    (demon_lab's net inputs) or ``"demon_original"``, the inputs DeMoN's released graph computes
+    (docs/reference.md §10: DeMoN's ``warp2d``, no clipping, no replacement of non-finite
+    values), for its converted weights (``python -m demon_lab.convert``)."""
 
-    def __init__(self, variant: str = "v1", width: float = 1.0, size: tuple[int, int] = (192, 256)):
+    def __init__(self, variant: str = "v1", width: float = 1.0, size: tuple[int, int] = (192, 256),
+                 compat: str | None = None):
         super().__init__()
         check_variant(variant)
         check_size(*size)
         if not width > 0:
             raise ValueError(f"width: expected a positive multiplier, got {width}")
-        self.variant, self.width, self.size = variant, width, tuple(size)
+        if compat not in COMPATS:
+            raise ValueError(f"compat: expected one of {COMPATS}, got {compat!r}")
+        if compat == "demon_original" and variant != "v1":
+            raise ValueError("compat='demon_original' reproduces DeMoN's released v1 graph: it needs variant='v1'")
+        self.variant, self.width, self.size, self.compat = variant, width, tuple(size), compat
         kw = dict(variant=variant, width=width, size=self.size)
         self.flow1 = FlowNet(iterative=False, **kw)
         self.dm1 = DepthMotionNet(iterative=False, **kw)
@@ -127,7 +150,7 @@ class DeMoN(nn.Module):
         flowconf5, flowconf2 = self.flow1(pair)
         flow, conf = flowconf2[:, :2], flowconf2[:, 2:]
         dm_flow, dm_conf = (gt2.flow, _oracle_confidence(gt2.flow)) if oracle == "flow" else (flow, conf)
-        extra = depth_motion_net_inputs(image2_2, dm_flow, dm_conf, None, intrinsics)
+        extra = depth_motion_net_inputs(image2_2, dm_flow, dm_conf, None, intrinsics, self.compat)
         dm = self.dm1(pair, extra)
         return Prediction(flow, conf, flowconf5[:, :2], flowconf5[:, 2:], dm.inv_depth, dm.normals, dm.motion)
 
@@ -135,11 +158,12 @@ class DeMoN(nn.Module):
                 prev: Prediction, gt2: GroundTruthInputs | None = None,
                 oracle: str | None = None) -> Prediction:
         src = gt2 if oracle == "depth_motion" else prev
-        extra = flow_net_inputs(image2_2, src.inv_depth, src.normals, src.motion, intrinsics)
+        extra = flow_net_inputs(image2_2, src.inv_depth, src.normals, src.motion, intrinsics, self.compat)
         flowconf5, flowconf2 = self.flow2(pair, extra)
         flow, conf = flowconf2[:, :2], flowconf2[:, 2:]
         dm_flow, dm_conf = (gt2.flow, _oracle_confidence(gt2.flow)) if oracle == "flow" else (flow, conf)
-        extra = depth_motion_net_inputs(image2_2, dm_flow, dm_conf, prev.motion.detach(), intrinsics)
+        extra = depth_motion_net_inputs(image2_2, dm_flow, dm_conf, prev.motion.detach(), intrinsics,
+                                        self.compat)
         dm = self.dm2(pair, extra)
         return Prediction(flow, conf, flowconf5[:, :2], flowconf5[:, 2:], dm.inv_depth, dm.normals, dm.motion)
 

@@ -45,7 +45,7 @@ class FlowStage(StageModule):
             with torch.no_grad():
                 src = (ground_truth_inputs(batch, K) if self.oracle == "depth_motion"
                        else self.chain.bootstrap(pair, image2_2, K))
-                extra = flow_net_inputs(image2_2, src.inv_depth, src.normals, src.motion, K)
+                extra = flow_net_inputs(image2_2, src.inv_depth, src.normals, src.motion, K, self.chain.compat)
             flow5, flow2 = self.chain.flow2(pair, extra)
         return losses.flow_loss(flow5, flow2, gt, self.weights, ramp=self.ramp(1 / 3, self.sig_start),
                                  level5=self.level5(1 / 3))
@@ -70,12 +70,12 @@ class DepthMotionStage(StageModule):
                 flow, conf = _flow_and_conf(self.chain.flow1(pair)[1])
             else:
                 prev = self.chain.bootstrap(pair, image2_2, K)
-                extra = flow_net_inputs(image2_2, prev.inv_depth, prev.normals, prev.motion, K)
+                extra = flow_net_inputs(image2_2, prev.inv_depth, prev.normals, prev.motion, K, self.chain.compat)
                 flow, conf = _flow_and_conf(self.chain.flow2(pair, extra)[1])
                 prev_motion = prev.motion
             if gt2 is not None:
                 flow, conf = gt2.flow, torch.isfinite(gt2.flow).to(gt2.flow.dtype)
-            extra = depth_motion_net_inputs(image2_2, flow, conf, prev_motion, K)
+            extra = depth_motion_net_inputs(image2_2, flow, conf, prev_motion, K, self.chain.compat)
         dm = getattr(self.chain, self.net)(pair, extra)
         ramp = self.ramp(2.0 if self.net == "dm1" else 1.0)
         return losses.depth_motion_loss(dm.inv_depth, dm.normals, dm.motion, gt, self.weights, ramp=ramp)

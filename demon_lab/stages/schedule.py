@@ -14,7 +14,7 @@ from typing import Any
 from omegaconf import DictConfig, OmegaConf
 
 from demon_lab import losses
-from demon_lab.identity import stage_key
+from demon_lab.identity import model_identity, stage_key
 from demon_lab.nets.chain import DeMoN
 from demon_lab.stages.cache import CheckpointError, StageDir
 
@@ -38,7 +38,7 @@ def describe_stage(cfg: DictConfig, name: str, upstream: dict[str, str]) -> dict
         "stage_config": plain(spec),
         "optimisation": {k: cfg.schedule[k] for k in ("lr_schedule", "weight_decay", "grad_clip")},
         "batch_size": spec.get("batch_size") or cfg.data.batch_size,
-        "model": {**plain(cfg.model), "size": list(cfg.data.size)},
+        "model": {**model_identity(plain(cfg.model)), "size": list(cfg.data.size)},  # weights by content
         # Only the weights this stage's loss reads: ablations that change another stage's terms
         # (no_normals for the flow stages, say, or no_sig for a flow stage without sig terms)
         # share this stage.
@@ -63,8 +63,14 @@ def stage_dirs(cfg: DictConfig) -> list[StageDir]:
 
 
 def build_chain(cfg: DictConfig) -> DeMoN:
-    """The untrained chain of the config's variant, width and input size."""
-    return DeMoN(cfg.model.variant, float(cfg.model.width), tuple(cfg.data.size))
+    """The chain of the config's variant, width, input size and compat mode: untrained, or with
+    ``model.weights`` loaded (:func:`demon_lab.weights.load_weights`)."""
+    chain = DeMoN(cfg.model.variant, float(cfg.model.width), tuple(cfg.data.size), cfg.model.get("compat"))
+    if cfg.model.get("weights"):
+        from demon_lab.weights import load_weights
+
+        load_weights(chain, cfg.model.weights)
+    return chain
 
 
 def load_stage(chain: DeMoN, stage: StageDir) -> None:

@@ -152,8 +152,12 @@ def prepare_chain(cfg: DictConfig, on_stage: Callable[[StageDir, str], L.pytorch
     L.seed_everything(int(cfg.seed), workers=True, verbose=False)
     chain = build_chain(cfg)
     figures: dict[str, dict] = {}
+    if cfg.model.get("weights"):
+        log.info("model.weights: %s loaded into the chain%s", cfg.model.weights,
+                 "" if not cfg.get("train", True) else " (the stages train from it)")
     if not cfg.get("train", True):
-        log.info("train=false: evaluating the untrained chain")
+        if not cfg.model.get("weights"):
+            log.info("train=false: evaluating the untrained chain")
         return chain.eval(), [], figures
     if not all(stage.done() for stage in stage_dirs(cfg)):
         from demon_lab.config import instantiate

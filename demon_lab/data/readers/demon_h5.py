@@ -5,8 +5,9 @@ Layout: ``/<scene>/frames/t0/v<k>/{image, depth, camera}``; ``image`` is the byt
 (int8 array, attribute ``format="webp"``); ``depth`` is LZ4-compressed float16 absolute depth
 (``format="lz4half"``, ``extents=[H, W]``, ``depth_metric`` ``camera_z`` or ``ray_length``,
 0 = invalid); ``camera`` holds 17 float64 values ``[fx, fy, skew, cx, cy, R (column-major, 9),
-t (3)]`` in pixels of the stored image, world-to-camera. ``t0`` may carry ``viewpoint_pairs``, an
-int32 vector of consecutive ordered pairs. Groups whose name starts with '.' are reserved.
+t (3)]`` in pixels of the stored image, world-to-camera (R and t NaN where a source has no
+poses). ``t0`` may carry ``viewpoint_pairs``, an int32 vector of consecutive ordered pairs.
+Groups whose name starts with '.' are reserved.
 
 :func:`write_demon_h5` writes exactly this layout (tests use it for tiny files; users can convert
 their own data with it).
@@ -24,6 +25,10 @@ from demon_lab.data.readers.common import inverse, normalised_intrinsics, relati
 from demon_lab.data.sample import DataError, Sample, make_sample
 
 MAX_VIEWS = 6  # DeMoN's reader loads at most 6 viewpoints per scene
+UNKNOWN_MOTION = np.array([0.0, 0.0, 0.0, 1.0, 0.0, 0.0])
+"""Stand-in motion while a pair without camera poses (NaN R, t: DeMoN's NYU test pairs) is prepared;
+the dataset then reports its motion as NaN, and the evaluation scores depth only, with the unit
+baseline DeMoN's ``evaluate`` assumes there."""
 
 
 def _h5py():
@@ -131,11 +136,16 @@ def load_demon_h5_pair(f, path: Path, scene: str, a: int, b: int) -> Sample:
         # DeMoN stores depth at the image resolution; resize nearest if not.
         d1 = cv2.resize(d1, (width, height), interpolation=cv2.INTER_NEAREST)
         d2 = cv2.resize(d2, (width, height), interpolation=cv2.INTER_NEAREST)
-    return make_sample(
+    motion = relative_motion(R1, t1, R2, t2) if np.isfinite(np.concatenate([R1.ravel(), t1, R2.ravel(), t2])).all() \
+        else None
+    sample = make_sample(
         f"{path.stem}/{scene}/frames/t0/v{a},v{b}", im1, im2,
-        normalised_intrinsics(K1, width, height), inverse(d1), relative_motion(R1, t1, R2, t2),
+        normalised_intrinsics(K1, width, height), inverse(d1), UNKNOWN_MOTION if motion is None else motion,
         intrinsics2=normalised_intrinsics(K2, width, height), inv_depth2=inverse(d2),
     )
+    if motion is None:
+        sample["motion_unknown"] = True  # the dataset reports NaN motion and flow (DeMoN's nyu2_test.h5)
+    return sample
 
 
 def write_demon_h5(path: str | Path, scenes: Iterable[dict], webp_quality: int = 90) -> None:
