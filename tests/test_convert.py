@@ -258,38 +258,6 @@ def test_the_converted_chain_computes_demons_graph(released):
         assert isinstance(out.passes[3], Prediction) and out.refined.shape == (1, 1, 192, 256)
 
 
-def test_demons_kernels_are_transcribed_exactly():
-    """warp2d and depth_to_flow as the graph's transcription computes them; flow_to_depth equal to
-    the exact least-squares triangulation and within float32 rounding of DeMoN's float32 solve on
-    well-conditioned pixels."""
-    import tf_demon_graph as ref
-
-    from demon_lab import geometry as geo
-
-    rng = np.random.default_rng(2)
-    image = rng.uniform(-0.5, 0.5, (1, 3, 12, 16)).astype(np.float32)
-    flow = (rng.standard_normal((1, 2, 12, 16)) * 0.2).astype(np.float32)
-    flow[0, :, 0, :4] = -0.5 / 16  # positions in (-1, 0)
-    flow[0, 0, 1, 1] = np.nan
-    assert np.array_equal(geo.warp2d(torch.from_numpy(image), torch.from_numpy(flow)).numpy(),
-                          ref.warp2d(image, flow))
-    inv = (1 / rng.uniform(1, 5, (1, 1, 12, 16))).astype(np.float32)
-    inv[0, 0, 3, 3] = 0
-    motion = np.array([[0.02, -0.05, 0.01, 0.4, 0.1, -0.05]], np.float32)
-    K = torch.from_numpy(ref.INTRINSICS[None].copy())
-    ours = geo.flow_from_depth_motion(torch.from_numpy(inv), torch.from_numpy(motion), K).numpy()
-    theirs = ref.depth_to_flow(inv, motion[:, :3], motion[:, 3:])
-    assert np.array_equal(np.isnan(ours), np.isnan(theirs))
-    assert np.nanmax(np.abs(ours - theirs)) < 1e-6
-    flow = theirs + (rng.standard_normal(theirs.shape) * 1e-3).astype(np.float32)
-    flow[np.isnan(flow)] = 0
-    ours = geo.depth_from_flow_motion(torch.from_numpy(flow), torch.from_numpy(motion), K).numpy()
-    exact = ref.flow_to_depth(flow, motion[:, :3], motion[:, 3:])
-    assert np.abs(ours - exact).max() <= 1e-5 * np.abs(exact).max()
-    kernel = ref.flow_to_depth(flow, motion[:, :3], motion[:, 3:], dtype=np.float32)
-    assert np.abs(ours - kernel).max() <= 1e-3 * np.abs(exact).max()
-
-
 def test_bad_checkpoints_are_one_line_and_write_nothing(tmp_path, capsys):
     shapes = demon_variables()
     out = tmp_path / "out.pt"
