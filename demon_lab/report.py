@@ -10,7 +10,8 @@ run per (row, seed), aggregates seeds (mean, sample std, 95 % t-interval, n) and
 ``reports/NAME.md``, ``.csv``, ``.tex`` and ``reports/figures/NAME_*.png``. FAILED runs (unless
 their job, or their row and seed, has a newer FINISHED run) and seeds without a run are listed.
 
-``--run`` first executes the spec's commands (skip-if-finished makes that incremental).
+``--run`` first executes the spec's commands (skip-if-finished makes that incremental), each with
+the ``--override KEY=VALUE`` options added (a study on files a user supplies: ``released_model``).
 :func:`publish` logs a study's report as artifacts of a run (a sweep's parent run).
 
 The runs come from ``mlflow.search_runs`` as one DataFrame (``run_id``, ``status``,
@@ -349,7 +350,7 @@ def write_markdown(spec, result, info, failed: pd.DataFrame, paper_rows) -> str:
                 paper = paper_cells(paper_rows, row.get("paper"), paper_dataset, table["columns"])
                 if paper:
                     values = " | ".join(_fmt(paper.get(c, math.nan)) for c in table["columns"])
-                    w(f"| *paper: {row['label']}* | | {values} |\n")
+                    w(f"| *{_paper_label(row)}* | | {values} |\n")
             w("\n")
     if spec.get("figures"):
         w("## Figures\n\n")
@@ -378,6 +379,11 @@ def write_markdown(spec, result, info, failed: pd.DataFrame, paper_rows) -> str:
         w(f"- {result['rerun']} FAILED run(s) followed by a FINISHED run of the same job, or of the same row "
           f"and seed, are not listed\n")
     return out.getvalue()
+
+
+def _paper_label(row: Mapping[str, Any]) -> str:
+    """A paper row's label: the spec's ``paper.label``, else ``paper: <row label>``."""
+    return row["paper"].get("label") or f"paper: {row['label']}"
 
 
 def write_csv(spec, result, paper_rows) -> str:
@@ -417,7 +423,8 @@ def write_tex(spec, result, info, paper_rows) -> str:
                 w(" & ".join([esc(row["label"]), *cells]) + " \\\\\n")
                 paper = paper_cells(paper_rows, row.get("paper"), paper_dataset, cols)
                 if paper:
-                    w(" & ".join(["\\quad\\textit{paper}", *[f"\\textit{{{_fmt(paper.get(c, math.nan))}}}"
+                    label = esc(row["paper"]["label"]) if row["paper"].get("label") else "paper"
+                    w(" & ".join([f"\\quad\\textit{{{label}}}", *[f"\\textit{{{_fmt(paper.get(c, math.nan))}}}"
                                                               for c in cols]]) + " \\\\\n")
             w("\\bottomrule\\end{tabular}\n\\end{table}\n\n")
     return out.getvalue()
@@ -513,6 +520,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("names", nargs="*", help="study specs (demon_lab/studies/NAME.yaml)")
     parser.add_argument("--all", action="store_true", help="every study spec in demon_lab/studies/")
     parser.add_argument("--run", action="store_true", help="first run the spec's jobs that MLflow lacks")
+    parser.add_argument("--override", action="append", default=[], metavar="KEY=VALUE",
+                        help="with --run: an override added to every command (e.g. data.root=DIR); repeatable")
     parser.add_argument("--tracking-uri", default=os.environ.get("MLFLOW_TRACKING_URI", "sqlite:///mlflow.db"))
     parser.add_argument("--out", type=Path, default=Path("reports"))
     parser.add_argument("--studies", type=Path, default=STUDIES, help=argparse.SUPPRESS)
@@ -524,7 +533,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     for name in names:
         try:
             if args.run:
-                status = max(status, run_spec(name, args.studies))
+                status = max(status, run_spec(name, args.studies, args.override))
             paths = report(name, args.tracking_uri, args.out, args.studies)
         except ReportError as e:
             print(f"error: {e}", file=sys.stderr)

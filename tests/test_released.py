@@ -240,3 +240,31 @@ def test_demon_test_files_are_prepared_with_demons_protocol(tmp_path):
     assert nyu2.eigen_crop and not nyu2.depthmask
     poseless = nyu2[0]
     assert torch.isnan(poseless["motion"]).all() and torch.isnan(poseless["gt_flow"]).all()
+
+
+def test_the_released_model_study_runs_and_reports_beside_the_paper(tmp_path):
+    """``report released_model --run --override ...``: the experiment's two jobs (3 and 5
+    iterations, nothing trained) on DeMoN's test files, then the report with the paper's DeMoN rows
+    (here at the smoke scale with smoke-size weights: the machinery, not the numbers)."""
+    import subprocess
+    import sys
+
+    from demon_lab_test_files import write_demon_test_files
+
+    root = tmp_path / "testdata"
+    write_demon_test_files(root, ["sun3d_test.h5", "mvs_test.h5"], size=(120, 160))
+    weights = _smoke_weights(tmp_path / "chain.pt", seed=5)
+    uri = f"sqlite:///{tmp_path}/mlflow.db"
+    overrides = [f"data.root={root}", f"model.weights={weights}", *smoke_overrides(tmp_path), "eval.point_clouds=0"]
+    command = [sys.executable, "-m", "demon_lab.report", "released_model", "--run", "--tracking-uri", uri,
+               "--out", str(tmp_path / "reports"), *[a for o in overrides for a in ("--override", o)]]
+    result = subprocess.run(command, cwd=tmp_path, capture_output=True, text=True, timeout=900)
+    assert result.returncode == 0, result.stderr[-3000:]
+    md = (tmp_path / "reports" / "released_model.md").read_text()
+    assert "| *DeMoN (paper)* | | 0.019 | 0.114 | 0.172 | 1.801 | 18.811 |" in md  # Table 2, SUN3D
+    assert "| *DeMoN (paper)* | | 0.047 | 0.202 | 0.305 | 5.156 | 14.447 |" in md  # Table 2, MVS
+    assert "### sun3d_test (paper: SUN3D)" in md and "### mvs_test (paper: MVS)" in md
+    line = next(x for x in md.splitlines() if x.startswith("| DeMoN (released weights, demon_lab) | 1 |"))
+    assert all(cell.strip() not in ("", "-") for cell in line.split("|")[3:-1])
+    assert "| iteration 5 | 1 |" in md
+    assert not (tmp_path / "cache" / "stages").exists()

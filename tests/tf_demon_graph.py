@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 import tensorflow as tf
-from lmbspecialops_reference import INTRINSICS, depth_to_flow, flow_to_depth, warp2d
+from lmbspecialops_reference import depth_to_flow, flow_to_depth, warp2d
 
 
 def leaky(x):
