@@ -424,7 +424,7 @@ def warp2d(image: Tensor, flow: Tensor) -> Tensor:
     with weights ``a = p - x0``; the sample is valid only when ``x0 >= 0``, ``x0 + 1 < W``,
     ``y0 >= 0`` and ``y0 + 1 < H``, and 0 otherwise (NaN flow: 0). For ``-1 < p < 0`` this takes
     pixels 0 and 1 with a negative weight, i.e. extrapolates; :func:`warp_image` (demon_lab's
-    default) gives 0 there (docs/reference.md §10 lists the differences between the two modes).
+    default) gives 0 there (docs/reference.md §11 lists the differences between the two modes).
 
     Args and returns: as :func:`warp_image`.
     """

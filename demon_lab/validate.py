@@ -108,6 +108,18 @@ def _model_files(cfg: DictConfig) -> None:
         raise ConfigError(f"model.weights: {why}")
 
 
+def _kept_nets(cfg: DictConfig, stage: str) -> None:
+    """A stage of 0 steps keeps its nets as ``model.weights`` holds them: they must be there."""
+    from demon_lab.stages.schedule import TRAINED_NETS
+    from demon_lab.weights import read_nets
+
+    held = read_nets(cfg.model.weights, mmap=True)
+    lacking = [n for n in TRAINED_NETS[stage] if n not in held]
+    if lacking:
+        raise ConfigError(f"schedule.stages.{stage}.steps: 0 keeps the stage's nets from model.weights, but "
+                          f"{cfg.model.weights} has no {', '.join(lacking)}")
+
+
 TRACKING_SCHEMES = ("sqlite", "http", "https", "postgresql", "mysql", "mssql", "file", "databricks")
 METHODS = ("demon", *BASELINES)
 
@@ -170,7 +182,9 @@ def validate(cfg: DictConfig) -> None:
     for name in stages:
         spec = cfg.schedule.stages[name]
         _choice(f"schedule.stages.{name}.kind", spec.kind, tuple(STAGE_KINDS))
-        _int(f"schedule.stages.{name}.steps", spec.steps, 1)
+        _int(f"schedule.stages.{name}.steps", spec.steps, 0 if cfg.model.get("weights") else 1)
+        if spec.steps == 0:
+            _kept_nets(cfg, name)
         _positive(f"schedule.stages.{name}.lr", spec.lr)
         _choice(f"schedule.stages.{name}.oracle", spec.get("oracle"), STAGE_ORACLES[spec.kind])
         _int(f"schedule.stages.{name}.warmup_steps", spec.get("warmup_steps", 0), 0)

@@ -268,3 +268,30 @@ def test_the_released_model_study_runs_and_reports_beside_the_paper(tmp_path):
     assert all(cell.strip() not in ("", "-") for cell in line.split("|")[3:-1])
     assert "| iteration 5 | 1 |" in md
     assert not (tmp_path / "cache" / "stages").exists()
+
+
+def test_fine_tuning_starts_from_the_weights_and_a_zero_step_stage_keeps_them(tmp_path):
+    """Table 2's oracle study started from given weights: flow1 kept as it is (0 steps), dm1
+    trained with ground-truth flow from the weights' dm1 (not from a fresh initialisation)."""
+    from demon_lab.job import run
+    from demon_lab.stages.cache import load_checkpoint
+    from demon_lab.stages.schedule import stage_dirs
+
+    weights = _smoke_weights(tmp_path / "chain.pt", seed=7)
+    given = torch.load(weights, weights_only=True)
+    overrides = smoke_overrides(tmp_path, "+experiment=gt_flow_oracle", "oracle=flow", f"model.weights={weights}",
+                                "schedule.stages.flow1.steps=0", "threads=1")
+    assert run(compose_config(overrides))["status"] == "finished"
+    flow1, dm1 = stage_dirs(compose_config(overrides))
+    kept = load_checkpoint(flow1.weights)["flow1"]
+    assert all(torch.equal(v, given[f"flow1.{k}"]) for k, v in kept.items())
+    tuned = load_checkpoint(dm1.weights)["dm1"]
+    fresh = DeMoN("v1", 0.0625, (64, 64)).dm1.state_dict()
+    moved = sum(float((v - given[f"dm1.{k}"]).norm()) for k, v in tuned.items())
+    apart = sum(float((fresh[k] - given[f"dm1.{k}"]).norm()) for k in tuned)
+    assert 0 < moved < 0.05 * apart
+    error = check(smoke_overrides(tmp_path, "schedule.stages.flow1.steps=0"))
+    assert "schedule.stages.flow1.steps" in error
+    torch.save({"dm1": DeMoN("v1", 0.0625, (64, 64)).dm1.state_dict()}, tmp_path / "dm1.pt")
+    error = check(smoke_overrides(tmp_path, f"model.weights={tmp_path / 'dm1.pt'}", "schedule.stages.flow1.steps=0"))
+    assert error.endswith(f"0 keeps the stage's nets from model.weights, but {tmp_path / 'dm1.pt'} has no flow1")

@@ -30,7 +30,7 @@ from demon_lab.nets.refine_net import RefineNet
 
 ORACLES = (None, "flow", "depth_motion")
 COMPATS = (None, "demon_original")
-"""``DeMoN(compat=...)``: None (demon_lab's inputs, docs/reference.md §10) or DeMoN's released graph exactly."""
+"""``DeMoN(compat=...)``: None (demon_lab's inputs, docs/reference.md §11) or DeMoN's released graph exactly."""
 
 
 @dataclass
@@ -123,7 +123,7 @@ def depth_motion_net_inputs(image2_2: torch.Tensor, flow: torch.Tensor, conf: to
 class DeMoN(nn.Module):
     """The whole chain. ``size`` is the input (H, W): sides multiples of 32. ``compat``: None
     (demon_lab's net inputs) or ``"demon_original"``, the inputs DeMoN's released graph computes
-    (docs/reference.md §10: DeMoN's ``warp2d``, no clipping, no replacement of non-finite
+    (docs/reference.md §11: DeMoN's ``warp2d``, no clipping, no replacement of non-finite
     values), for its converted weights (``python -m demon_lab.convert``)."""
 
     def __init__(self, variant: str = "v1", width: float = 1.0, size: tuple[int, int] = (192, 256),
