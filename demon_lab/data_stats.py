@@ -121,10 +121,12 @@ def format_table(stats: dict[str, Any]) -> str:
 
 
 def split_datasets(cfg: DictConfig) -> list:
-    from demon_lab.config import instantiate
+    from demon_lab.config import drop_missing_sources, instantiate
 
     if cfg.split not in ("train", "val", "test"):
         raise ConfigError(f"split: {cfg.split!r} is not one of train, val, test")
+    for note in drop_missing_sources(cfg):  # DeMoN's files under data.root: whichever are there
+        print(f"[demon_lab.data_stats] {note}", flush=True)
     entries = cfg.data[cfg.split]
     if cfg.split == "train":
         entries = [e.dataset for e in entries]

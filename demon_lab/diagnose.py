@@ -17,7 +17,8 @@ the pairs of:
   row ``refined``: the same for the refinement net's full-resolution depth (when it is trained).
 
 The chain's stages must be in the stage cache (``python -m demon_lab`` with the same overrides
-trains them); nothing is trained or tracked here. ``--out FILE`` also writes the numbers as JSON.
+trains them), or ``model.weights=FILE train=false`` names the weights to diagnose as they are
+(DeMoN's released ones: docs/released_model.md); nothing is trained or tracked here. ``--out FILE`` also writes the numbers as JSON.
 
     python -m demon_lab.diagnose                       # the default chain (scale cpu, seed 0)
     python -m demon_lab.diagnose seed=1 iterations=5 --out diag.json
@@ -115,29 +116,35 @@ def run(overrides: Sequence[str], out: str | None = None) -> dict[str, list[dict
     from hydra import compose, initialize_config_dir
 
     from demon_lab.__main__ import CONF
-    from demon_lab.config import ConfigError, instantiate
+    from demon_lab.config import ConfigError, drop_missing_sources, instantiate
     from demon_lab.stages.schedule import build_chain, load_stage, stage_dirs
     from demon_lab.validate import validate
 
     with initialize_config_dir(CONF, version_base="1.3"):
         cfg = compose("config", overrides=list(overrides))
+    drop_missing_sources(cfg)
     validate(cfg)
     if cfg.get("threads") is not None:
         from demon_lab.job import set_threads
 
         set_threads(int(cfg.threads))
-    chain = build_chain(cfg)
-    stages = stage_dirs(cfg)
-    if not {s.name for s in stages} >= {"flow1", "dm1", "flow2", "dm2", "iterative"}:
-        raise ConfigError("schedule.until: the diagnosis needs the chain up to the iterative stage")
-    refine = any(s.name == "refine" and s.done() for s in stages)
-    stages = [s for s in stages if s.name != "refine" or refine]
-    missing = [s.name for s in stages if not s.done()]
-    if missing:
-        raise ConfigError(f"stages not in the cache: {', '.join(missing)} (train them with "
-                          f"python -m demon_lab {' '.join(overrides)})")
-    for stage in stages:
-        load_stage(chain, stage)
+    chain = build_chain(cfg)  # with model.weights loaded, if given
+    if cfg.model.get("weights") and not cfg.train:  # the given weights as they are (DeMoN's released ones)
+        from demon_lab.weights import read_nets
+
+        refine = "refine_net" in read_nets(cfg.model.weights, mmap=True)
+    else:
+        stages = stage_dirs(cfg)
+        if not {s.name for s in stages} >= {"flow1", "dm1", "flow2", "dm2", "iterative"}:
+            raise ConfigError("schedule.until: the diagnosis needs the chain up to the iterative stage")
+        refine = any(s.name == "refine" and s.done() for s in stages)
+        stages = [s for s in stages if s.name != "refine" or refine]
+        missing = [s.name for s in stages if not s.done()]
+        if missing:
+            raise ConfigError(f"stages not in the cache: {', '.join(missing)} (train them with "
+                              f"python -m demon_lab {' '.join(overrides)})")
+        for stage in stages:
+            load_stage(chain, stage)
     chain.eval()
     results = {}
     for spec in cfg.data.test:

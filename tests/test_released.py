@@ -295,3 +295,26 @@ def test_fine_tuning_starts_from_the_weights_and_a_zero_step_stage_keeps_them(tm
     torch.save({"dm1": DeMoN("v1", 0.0625, (64, 64)).dm1.state_dict()}, tmp_path / "dm1.pt")
     error = check(smoke_overrides(tmp_path, f"model.weights={tmp_path / 'dm1.pt'}", "schedule.stages.flow1.steps=0"))
     assert error.endswith(f"0 keeps the stage's nets from model.weights, but {tmp_path / 'dm1.pt'} has no flow1")
+
+
+def test_demon_train_trains_on_demons_files_and_tests_on_its_test_files(tmp_path):
+    """data=demon_train: the stages train on DeMoN's training files that are under data.root (the
+    others named and skipped) and the job tests on its test files; diagnose reads given weights."""
+    from demon_lab_test_files import write_demon_test_files
+
+    from demon_lab import diagnose
+    from demon_lab.job import run
+
+    root = tmp_path / "data"
+    write_demon_test_files(root, ["sun3d_train_0.1m_to_0.2m.h5", "scenes11_train.h5", "sun3d_test.h5"],
+                           size=(120, 160))
+    assert check(smoke_overrides(tmp_path, "data=demon_train", f"data.root={root}", "scale=paper")) is None
+    overrides = smoke_overrides(tmp_path, "data=demon_train", f"data.root={root}", "schedule.until=dm1",
+                                "iterations=0", "threads=1")
+    result = run(compose_config(overrides))
+    assert result["status"] == "finished" and set(result["summary"]) == {"sun3d_test"}
+    assert result["figures"]["flow1"]["steps_per_second"] > 0 and (tmp_path / "cache" / "stages").is_dir()
+    weights = _smoke_weights(tmp_path / "chain.pt")
+    passes = diagnose.run(smoke_overrides(tmp_path, "data=demon_test", f"data.root={root}",
+                                          f"model.weights={weights}", "train=false", "iterations=2"))
+    assert [row["pass"] for row in passes["sun3d_test"]] == [0, 1, 2, "refined"]
