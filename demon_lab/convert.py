@@ -158,6 +158,9 @@ def main(argv: list[str] | None = None) -> int:
     except (CheckpointFormatError, ConversionError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
+    except OSError as e:  # unreadable (permissions, a folder where a file should be, ...)
+        print(f"error: {e.filename or args.prefix}: cannot read ({e.strerror or e})", file=sys.stderr)
+        return 2
     try:
         atomic_torch_save(result.state_dict, args.out)
     except OSError as e:

@@ -18,7 +18,8 @@ the pairs of:
 
 The chain's stages must be in the stage cache (``python -m demon_lab`` with the same overrides
 trains them), or ``model.weights=FILE train=false`` names the weights to diagnose as they are
-(DeMoN's released ones: docs/released_model.md); nothing is trained or tracked here. ``--out FILE`` also writes the numbers as JSON.
+(DeMoN's released ones: docs/released_model.md); nothing is trained or tracked here.
+``--out FILE`` also writes the numbers as JSON.
 
     python -m demon_lab.diagnose                       # the default chain (scale cpu, seed 0)
     python -m demon_lab.diagnose seed=1 iterations=5 --out diag.json
@@ -52,7 +53,7 @@ def _pixel_mean(x: torch.Tensor) -> torch.Tensor:
 def diagnose_batch(chain, batch: dict, iterations: int, refine: bool = False) -> list[list[dict[str, float]]]:
     """Per pass (0..iterations), per sample of ``batch``: the numbers the module docstring names;
     with ``refine``, one more entry for the refined depth (only ``nonpositive_depth`` set)."""
-    from demon_lab.nets.chain import downsample_image, flow_net_inputs
+    from demon_lab.nets.chain import downsample_image, flow_net_inputs, net_intrinsics
 
     gt = losses.ground_truth(batch)
     pair = torch.cat([batch["image1"], batch["image2"]], 1)
@@ -65,7 +66,9 @@ def diagnose_batch(chain, batch: dict, iterations: int, refine: bool = False) ->
             if k == 0:
                 p, prior = chain.bootstrap(pair, image2_2, K), None
             else:
-                prior = flow_net_inputs(image2_2, prev.inv_depth, prev.normals, prev.motion, K, chain.compat)[:, 3:5]
+                compat = getattr(chain, "compat", None)
+                prior = flow_net_inputs(image2_2, prev.inv_depth, prev.normals, prev.motion,
+                                        net_intrinsics(K, compat), compat)[:, 3:5]
                 p = chain.iterate(pair, image2_2, K, prev)
             nan = torch.full((pair.shape[0],), math.nan)
             row = {

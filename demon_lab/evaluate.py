@@ -38,7 +38,7 @@ def evaluate_dataset(chain: DeMoN, dataset, iterations: int, oracle: str | None 
     per-pixel errors of the final depth (refined, else the last pass)."""
     n = len(dataset) if max_samples is None else min(len(dataset), int(max_samples))
     subset = torch.utils.data.Subset(dataset, range(n))
-    protocol = {"depthmask": getattr(dataset, "depthmask", True), "eigen_crop": getattr(dataset, "eigen_crop", False)}
+    protocol = metrics.protocol(dataset)
     device = next(chain.parameters()).device
     rows: list[dict[str, Any]] = []
     kept: list[dict[str, Any]] = []
@@ -46,11 +46,8 @@ def evaluate_dataset(chain: DeMoN, dataset, iterations: int, oracle: str | None 
         b = {k: v.to(device) if isinstance(v, torch.Tensor) else v for k, v in batch.items()}
         gt = {"inv_depth": b["inv_depth"], "motion": b["motion"]} if oracle else None
         out = chain(b["image1"], b["image2"], b["intrinsics"], iterations=iterations, oracle=oracle, gt=gt)
-        # ground truth at the dataset's gt_size where it has one (DeMoN's 640x480), else the inputs'
-        gt = {key: batch.get(f"gt_{key}", batch[key]) for key in ("inv_depth", "intrinsics", "flow")}
         for i in range(b["image1"].shape[0]):
-            truth = {"inv_depth": gt["inv_depth"][i, 0], "motion": batch["motion"][i],
-                     "intrinsics": gt["intrinsics"][i], "flow": gt["flow"][i]}
+            truth = metrics.ground_truth({k: v[i] for k, v in batch.items() if isinstance(v, torch.Tensor)}, dataset)
             for k, p in enumerate(out.passes):
                 pred = {"inv_depth": p.inv_depth[i, 0].cpu(), "motion": p.motion[i].cpu(), "flow": p.flow[i].cpu()}
                 rows.append({"id": batch["id"][i], "it": k, **metrics.evaluate_sample(pred, truth, **protocol)})

@@ -137,6 +137,10 @@ def _train_and_evaluate(cfg: DictConfig, tracker, run_id: str) -> dict[str, Any]
     tracker.log_metrics(run_id, {f"stage/{name}/{k}": v for name, fig in figures.items() for k, v in fig.items()})
 
     refined = cfg.method == "demon" and (not cfg.train or "refine" in [s.name for s in stages])
+    if refined and not cfg.train and cfg.model.get("weights"):  # the refinement net only if the file has it
+        from demon_lab.weights import read_nets
+
+        refined = "refine_net" in read_nets(cfg.model.weights, mmap=True)
     results = evaluate_test_sets(cfg, chain, refined)
     summary = {r.name: r.summary for r in results}
     tracker.log_metrics(run_id, {f"test/{name}/{k}": v for name, values in summary.items() for k, v in values.items()})

@@ -236,6 +236,24 @@ EIGEN_CROP = (slice(23, 23 + 436), slice(27, 27 + 588))
 """Eigen's NYU evaluation crop of 480x640 maps (DeMoN's ``eigen_crop_gt_and_pred``)."""
 
 
+def protocol(dataset: Any) -> dict[str, bool]:
+    """A test set's evaluation options for :func:`evaluate_sample` (its ``depthmask`` and
+    ``eigen_crop``; DeMoN's paper-style defaults where a dataset does not set them)."""
+    return {"depthmask": bool(getattr(dataset, "depthmask", True)),
+            "eigen_crop": bool(getattr(dataset, "eigen_crop", False))}
+
+
+def ground_truth(sample: Mapping[str, Any], dataset: Any) -> dict[str, Any]:
+    """The ground truth :func:`evaluate_sample` scores one prepared sample against: at the
+    dataset's ``gt_size`` where it has one (``gt_*`` keys: DeMoN's 640x480), else at the inputs'
+    size, with the intrinsics the depthmask rule projects with (``depthmask_intrinsics``, else
+    the sample's)."""
+    mask_k = getattr(dataset, "depthmask_intrinsics", None)
+    pick = lambda key: sample[f"gt_{key}"] if f"gt_{key}" in sample else sample[key]  # noqa: E731
+    return {"inv_depth": pick("inv_depth")[0], "motion": sample["motion"], "flow": pick("flow"),
+            "intrinsics": pick("intrinsics") if mask_k is None else torch.tensor(mask_k, dtype=torch.float64)}
+
+
 def evaluate_sample(
     pred: Mapping[str, Any],
     gt: Mapping[str, Any],

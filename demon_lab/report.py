@@ -11,7 +11,8 @@ run per (row, seed), aggregates seeds (mean, sample std, 95 % t-interval, n) and
 their job, or their row and seed, has a newer FINISHED run) and seeds without a run are listed.
 
 ``--run`` first executes the spec's commands (skip-if-finished makes that incremental), each with
-the ``--override KEY=VALUE`` options added (a study on files a user supplies: ``released_model``).
+the ``--override KEY=VALUE`` options added; a spec's ``requires`` (``KEY: PLACEHOLDER``) names the
+keys a user must pass so (a study on files the user supplies: ``released_model``).
 :func:`publish` logs a study's report as artifacts of a run (a sweep's parent run).
 
 The runs come from ``mlflow.search_runs`` as one DataFrame (``run_id``, ``status``,
@@ -88,6 +89,8 @@ def load_spec(name: str, directory: Path = STUDIES) -> dict[str, Any]:
     for key in ("title", "tables", "datasets"):
         if key not in spec:
             raise ReportError(f"{_shown(name, directory)}: missing key {key!r}")
+    if not isinstance(spec.get("requires") or {}, dict):
+        raise ReportError(f"{_shown(name, directory)}: requires: expected KEY: PLACEHOLDER pairs")
     for figure in spec.get("figures", []):
         if figure not in FIGURES:
             raise ReportError(f"{_shown(name, directory)}: figures: expected some of {FIGURES}, got {figure!r}")
@@ -302,7 +305,8 @@ def _describe(spec: Mapping[str, Any], used: pd.DataFrame) -> dict[str, Any]:
         return sorted(set(v.where(v.notna() & v.ne(""), "?")))
 
     seeds = field(chosen, "seed")
-    commands = [f"python -m demon_lab -m {' '.join(overrides)}" for overrides in spec.get("runs", [])]
+    needed = [f"{k}={v}" for k, v in (spec.get("requires") or {}).items()]
+    commands = [f"python -m demon_lab -m {' '.join([*overrides, *needed])}" for overrides in spec.get("runs", [])]
     return {"scale": ", ".join(values("scale")) or "-", "data": ", ".join(values("data")) or "-",
             "seeds": ", ".join(sorted(set(seeds.where(seeds.notna() & seeds.ne(""), "0")), key=int)) or "-",
             "runs": str(len(chosen)), "commands": commands}
@@ -507,6 +511,10 @@ def publish(study: str, uri: str, run_id: str, directory: Path = STUDIES) -> lis
 def run_spec(name: str, directory: Path = STUDIES, extra: Sequence[str] = ()) -> int:
     """Runs the spec's commands (finished jobs are skipped by run key); returns the worst exit code."""
     spec = load_spec(name, directory)
+    given = {o.split("=", 1)[0].lstrip("+~") for o in extra}
+    lacking = [f"--override {k}={v}" for k, v in (spec.get("requires") or {}).items() if k not in given]
+    if lacking:
+        raise ReportError(f"{name} runs on files you supply: pass {' '.join(lacking)}")
     worst = 0
     for overrides in spec.get("runs", []):
         command = [sys.executable, "-m", "demon_lab", "-m", *overrides, *extra]

@@ -18,6 +18,7 @@ against TensorFlow's own on checkpoints TensorFlow writes.
 
 from __future__ import annotations
 
+import re
 import struct
 from dataclasses import dataclass
 from pathlib import Path
@@ -132,16 +133,19 @@ class CheckpointReader:
         table = index.read_bytes()
         try:
             entries = dict(self._read_table(table))
-        except (IndexError, ValueError, struct.error) as e:
+            header = entries.pop("", None)
+            if header is None:
+                raise ValueError("no bundle header")
+            h = _fields(header)
+            self.num_shards = h.get(1, [1])[0]
+            if not isinstance(self.num_shards, int) or not 0 < self.num_shards < 1 << 20:
+                raise ValueError(f"a bundle header with {self.num_shards!r} shards")
+            big_endian = h.get(2, [0])[0] != 0
+            self.entries = {name: _entry(name, value) for name, value in entries.items()}
+        except (IndexError, ValueError, TypeError, UnicodeDecodeError, struct.error) as e:
             raise CheckpointFormatError(f"{index}: not a TensorFlow checkpoint index ({e})") from None
-        header = entries.pop("", None)
-        if header is None:
-            raise CheckpointFormatError(f"{index}: no bundle header (not a TensorFlow V2 checkpoint index)")
-        h = _fields(header)
-        self.num_shards = h.get(1, [1])[0]
-        if h.get(2, [0])[0] != 0:
+        if big_endian:
             raise CheckpointFormatError(f"{index}: a big-endian checkpoint; only little-endian ones are supported")
-        self.entries = {name: _entry(name, value) for name, value in entries.items()}
         self.shards = [Path(f"{self.prefix}.data-{i:05d}-of-{self.num_shards:05d}") for i in range(self.num_shards)]
         for entry in self.entries.values():
             shard = self._shard(entry)
@@ -217,7 +221,7 @@ class CheckpointReader:
                                         "reader does not read")
         dtype = np.dtype(DTYPES[entry.dtype]).newbyteorder("<")
         count = int(np.prod(entry.shape, dtype=np.int64))
-        if count * dtype.itemsize != entry.size:
+        if any(d < 0 for d in entry.shape) or count * dtype.itemsize != entry.size:
             raise CheckpointFormatError(f"{self._index_path}: {name}: {entry.size} bytes for shape "
                                         f"{list(entry.shape)} of {entry.dtype_name}")
         with open(shard, "rb") as f:
@@ -235,7 +239,5 @@ def normalise_prefix(path: str | Path) -> str:
     text = str(path)
     if text.endswith(".index"):
         return text[: -len(".index")]
-    head, sep, tail = text.rpartition(".data-")
-    if sep and "-of-" in tail:
-        return head
-    return text
+    shard = re.search(r"\.data-\d{5}-of-\d{5}$", text)
+    return text[: shard.start()] if shard else text

@@ -106,18 +106,30 @@ def _model_files(cfg: DictConfig) -> None:
     why = check_fits(weights, cfg.model.variant, float(cfg.model.width), tuple(cfg.data.size))
     if why:
         raise ConfigError(f"model.weights: {why}")
+    if not cfg.train:  # evaluated as they are: the passes run must not fall back on untrained nets
+        from demon_lab.weights import read_nets
+
+        needed = ["flow1", "dm1"] + (["flow2", "dm2"] if int(cfg.iterations) > 0 else [])
+        lacking = [n for n in needed if n not in read_nets(weights, mmap=True)]
+        if lacking:
+            raise ConfigError(f"model.weights: {weights} has no {', '.join(lacking)}, which train=false with "
+                              f"iterations={cfg.iterations} evaluates (the refinement net is optional)")
 
 
-def _kept_nets(cfg: DictConfig, stage: str) -> None:
-    """A stage of 0 steps keeps its nets as ``model.weights`` holds them: they must be there."""
+def _kept_nets(cfg: DictConfig, stage: str, before: list[str]) -> None:
+    """A stage of 0 steps trains nothing: its nets stay as they are at that point of the schedule,
+    so each must come from an earlier stage that trains it or from ``model.weights``."""
     from demon_lab.stages.schedule import TRAINED_NETS
     from demon_lab.weights import read_nets
 
-    held = read_nets(cfg.model.weights, mmap=True)
-    lacking = [n for n in TRAINED_NETS[stage] if n not in held]
+    earlier = {n for s in before if cfg.schedule.stages[s].steps > 0 for n in TRAINED_NETS[s]}
+    held = set(read_nets(cfg.model.weights, mmap=True)) if cfg.model.get("weights") else set()
+    lacking = [n for n in TRAINED_NETS[stage] if n not in earlier | held]
     if lacking:
-        raise ConfigError(f"schedule.stages.{stage}.steps: 0 keeps the stage's nets from model.weights, but "
-                          f"{cfg.model.weights} has no {', '.join(lacking)}")
+        source = f"{cfg.model.weights} has no" if cfg.model.get("weights") else "model.weights is not set for"
+        raise ConfigError(f"schedule.stages.{stage}.steps: 0 trains nothing and keeps the stage's nets as they "
+                          f"are, but no earlier stage trains {', '.join(lacking)} and {source} "
+                          f"{', '.join(lacking)}")
 
 
 TRACKING_SCHEMES = ("sqlite", "http", "https", "postgresql", "mysql", "mssql", "file", "databricks")
@@ -182,9 +194,9 @@ def validate(cfg: DictConfig) -> None:
     for name in stages:
         spec = cfg.schedule.stages[name]
         _choice(f"schedule.stages.{name}.kind", spec.kind, tuple(STAGE_KINDS))
-        _int(f"schedule.stages.{name}.steps", spec.steps, 0 if cfg.model.get("weights") else 1)
-        if spec.steps == 0:
-            _kept_nets(cfg, name)
+        _int(f"schedule.stages.{name}.steps", spec.steps, 0)
+        if spec.steps == 0 and name in trained:
+            _kept_nets(cfg, name, trained[: trained.index(name)])
         _positive(f"schedule.stages.{name}.lr", spec.lr)
         _choice(f"schedule.stages.{name}.oracle", spec.get("oracle"), STAGE_ORACLES[spec.kind])
         _int(f"schedule.stages.{name}.warmup_steps", spec.get("warmup_steps", 0), 0)

@@ -21,7 +21,7 @@ tf = pytest.importorskip("tensorflow", reason="needs TensorFlow to write checkpo
 from demon_lab import convert  # noqa: E402
 from demon_lab.nets import DeMoN  # noqa: E402
 from demon_lab.nets.blocks import Conv, ConvPair, UpConv  # noqa: E402
-from demon_lab.tf_checkpoint import CheckpointReader  # noqa: E402
+from demon_lab.tf_checkpoint import CheckpointFormatError, CheckpointReader  # noqa: E402
 
 HERE = Path(__file__).resolve().parent
 VARIABLES = HERE / "data" / "demon_v1_variables.txt"
@@ -91,6 +91,14 @@ def test_the_reader_reads_what_tensorflow_reads(tmp_path):
     # the prefix, the index or a data shard name the same checkpoint
     for path in (f"{prefix}.index", f"{prefix}.data-00000-of-00001"):
         assert set(CheckpointReader(path).entries) == set(values)
+    # a changed byte is caught by the tensor's CRC32C
+    data = Path(f"{prefix}.data-00000-of-00001")
+    raw = bytearray(data.read_bytes())
+    entry = ours.entries["scope3/layer10/kernel"]
+    raw[entry.offset + 1] ^= 0x40
+    data.write_bytes(bytes(raw))
+    with pytest.raises(CheckpointFormatError, match="checksum mismatch in scope3/layer10/kernel"):
+        CheckpointReader(prefix).read("scope3/layer10/kernel")
 
 
 def test_conversion_maps_every_variable_and_loads_strictly(released, capsys):

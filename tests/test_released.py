@@ -267,7 +267,11 @@ def test_the_released_model_study_runs_and_reports_beside_the_paper(tmp_path):
     line = next(x for x in md.splitlines() if x.startswith("| DeMoN (released weights, demon_lab) | 1 |"))
     assert all(cell.strip() not in ("", "-") for cell in line.split("|")[3:-1])
     assert "| iteration 5 | 1 |" in md
+    assert "`python -m demon_lab -m +experiment=released_model data.root=DIR model.weights=FILE`" in md
     assert not (tmp_path / "cache" / "stages").exists()
+    without = subprocess.run(command[:command.index("--override")], cwd=tmp_path, capture_output=True, text=True)
+    assert without.returncode == 2 and without.stderr.strip() == (
+        "error: released_model runs on files you supply: pass --override data.root=DIR --override model.weights=FILE")
 
 
 def test_fine_tuning_starts_from_the_weights_and_a_zero_step_stage_keeps_them(tmp_path):
@@ -291,10 +295,12 @@ def test_fine_tuning_starts_from_the_weights_and_a_zero_step_stage_keeps_them(tm
     apart = sum(float((fresh[k] - given[f"dm1.{k}"]).norm()) for k in tuned)
     assert 0 < moved < 0.05 * apart
     error = check(smoke_overrides(tmp_path, "schedule.stages.flow1.steps=0"))
-    assert "schedule.stages.flow1.steps" in error
+    assert error.endswith("no earlier stage trains flow1 and model.weights is not set for flow1")
     torch.save({"dm1": DeMoN("v1", 0.0625, (64, 64)).dm1.state_dict()}, tmp_path / "dm1.pt")
     error = check(smoke_overrides(tmp_path, f"model.weights={tmp_path / 'dm1.pt'}", "schedule.stages.flow1.steps=0"))
-    assert error.endswith(f"0 keeps the stage's nets from model.weights, but {tmp_path / 'dm1.pt'} has no flow1")
+    assert error.endswith(f"no earlier stage trains flow1 and {tmp_path / 'dm1.pt'} has no flow1")
+    # skipping the joint iterative stage keeps flow2 and dm2 as their own stages trained them
+    assert check(smoke_overrides(tmp_path, "schedule.stages.iterative.steps=0")) is None
 
 
 def test_demon_train_trains_on_demons_files_and_tests_on_its_test_files(tmp_path):
@@ -318,3 +324,36 @@ def test_demon_train_trains_on_demons_files_and_tests_on_its_test_files(tmp_path
     passes = diagnose.run(smoke_overrides(tmp_path, "data=demon_test", f"data.root={root}",
                                           f"model.weights={weights}", "train=false", "iterations=2"))
     assert [row["pass"] for row in passes["sun3d_test"]] == [0, 1, 2, "refined"]
+
+
+def test_compat_iterative_passes_use_demons_constant_intrinsics():
+    """DeMoN's IterativeNet computes its inputs with [0.89115971, 1.18821287, 0.5, 0.5] whatever the
+    images; demon_lab's default uses the intrinsics it is given."""
+    torch.manual_seed(0)
+    images = [torch.rand(1, 3, 64, 64) - 0.5 for _ in range(2)]
+    other = torch.tensor([[0.8, 1.1, 0.48, 0.52]])
+    original = DeMoN("v1", 0.0625, (64, 64), compat="demon_original").eval()
+    default = DeMoN("v1", 0.0625, (64, 64)).eval()
+    default.load_state_dict(original.state_dict())
+    with torch.no_grad():
+        a, b = (original(*images, k, iterations=2) for k in (K, other))
+        c, d = (default(*images, k, iterations=2) for k in (K, other))
+    assert all(torch.equal(p.inv_depth, q.inv_depth) and torch.equal(p.flow, q.flow)
+               for p, q in zip(a.passes, b.passes))
+    assert not torch.equal(c.passes[2].flow, d.passes[2].flow)
+
+
+def test_evaluating_given_weights_needs_the_nets_it_runs(tmp_path):
+    source = DeMoN("v1", 0.0625, (64, 64))
+    torch.save({k: v for k, v in source.state_dict().items() if k.split(".")[0] in ("flow1", "dm1")},
+               tmp_path / "bootstrap.pt")
+    bootstrap = f"model.weights={tmp_path / 'bootstrap.pt'}"
+    error = check(smoke_overrides(tmp_path, bootstrap, "train=false"))  # iterations=3 by default
+    assert error == (f"model.weights: {tmp_path / 'bootstrap.pt'} has no flow2, dm2, which train=false with "
+                     "iterations=3 evaluates (the refinement net is optional)")
+    from demon_lab.job import run
+
+    result = run(compose_config(smoke_overrides(tmp_path, bootstrap, "train=false", "iterations=0", "threads=1")))
+    assert result["status"] == "finished"
+    assert "refined/l1_inv" not in result["summary"]["synthetic_sun3d"]  # no refinement net in the file
+    assert "it0/l1_inv" in result["summary"]["synthetic_sun3d"]

@@ -68,7 +68,9 @@ def test_every_shipped_spec_loads_and_names_known_paper_rows():
     rows = report.paper_numbers()
     for path in sorted(report.STUDIES.glob("*.yaml")):
         spec = report.load_spec(path.stem)
-        for overrides in spec["runs"]:  # every job of the spec's commands composes and validates
+        for overrides in spec["runs"] if not spec.get("requires") else []:
+            # every job of the spec's commands composes and validates (a spec on files a user supplies,
+            # released_model, runs in tests/test_released.py on tiny files)
             assert check(["-m", *overrides]) is None, (path.stem, overrides)
         for table in spec["tables"]:
             assert (resources.CONF / "experiment" / f"{table['experiment']}.yaml").is_file(), path.stem

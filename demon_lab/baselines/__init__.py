@@ -35,9 +35,11 @@ def evaluate_baseline(method: str, dataset, cfg: BaselineConfig, chain=None, ite
     n = len(dataset) if max_samples is None else min(len(dataset), int(max_samples))
     rows: list[dict[str, Any]] = []
     kept: list[dict[str, Any]] = []
+    protocol = metrics.protocol(dataset)
     for i in range(n):
         sample = dataset[i]
-        truth = {"inv_depth": sample["inv_depth"][0], "motion": sample["motion"], "intrinsics": sample["intrinsics"]}
+        truth = metrics.ground_truth(sample, dataset)
+        truth.pop("flow")  # the baselines predict no flow: EPE is not scored
         flow = None
         try:
             if method == "base_ff":
@@ -54,10 +56,10 @@ def evaluate_baseline(method: str, dataset, cfg: BaselineConfig, chain=None, ite
         except BaselineFailure as e:
             rows.append({"id": sample["id"], "it": "baseline", "failed": str(e)})
             continue
-        scores = metrics.evaluate_sample({"inv_depth": pred["inv_depth"], "motion": pred["motion"]}, truth)
+        scores = metrics.evaluate_sample({"inv_depth": pred["inv_depth"], "motion": pred["motion"]}, truth, **protocol)
         rows.append({"id": sample["id"], "it": "baseline", "failed": "", **scores})
         if histogram is not None:
-            histogram.add(metrics.pixel_depth_errors({"inv_depth": pred["inv_depth"]}, truth))
+            histogram.add(metrics.pixel_depth_errors({"inv_depth": pred["inv_depth"]}, truth, **protocol))
         if len(kept) < keep:
             kept.append({"id": sample["id"], "image1": sample["image1"], "gt_inv_depth": sample["inv_depth"][0],
                          "gt_motion": sample["motion"],

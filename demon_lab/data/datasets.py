@@ -49,6 +49,7 @@ class PairDataset(torch.utils.data.Dataset):
         gt_size: Sequence[int] | None = None,
         depthmask: bool = True,
         eigen_crop: bool = False,
+        depthmask_intrinsics: Sequence[float] | None = None,
     ):
         """
         Args:
@@ -62,9 +63,10 @@ class PairDataset(torch.utils.data.Dataset):
             gt_size: (H, W) of the ground truth the evaluation scores against (``gt_inv_depth``,
                 ``gt_flow``, ``gt_intrinsics`` of each sample, resampled from the native sample as
                 the inputs are); None: the inputs' own. DeMoN's evaluation scores at 480x640.
-            depthmask, eigen_crop: the evaluation protocol of this set (:func:`demon_lab.metrics.
-                evaluate_sample`): DeMoN's ``depthmask`` rule; Eigen's NYU crop of 480x640
-                ground truth (needs ``gt_size=[480, 640]``).
+            depthmask, eigen_crop, depthmask_intrinsics: the evaluation protocol of this set
+                (:func:`demon_lab.metrics.evaluate_sample`): DeMoN's ``depthmask`` rule; Eigen's NYU
+                crop of 480x640 ground truth (needs ``gt_size=[480, 640]``); the intrinsics the
+                depthmask rule projects with (None: each sample's own).
         """
         self.size = None if size is None else (int(size[0]), int(size[1]))
         self.fixed_intrinsics = fixed_intrinsics
@@ -78,6 +80,7 @@ class PairDataset(torch.utils.data.Dataset):
             raise ValueError(f"eigen_crop: Eigen's crop is defined on 480x640 ground truth; set gt_size=[480, 640], "
                              f"got {self.gt_size}")
         self.depthmask, self.eigen_crop = bool(depthmask), bool(eigen_crop)
+        self.depthmask_intrinsics = None if depthmask_intrinsics is None else [float(k) for k in depthmask_intrinsics]
 
     name = "pairs"
 

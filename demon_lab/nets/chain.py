@@ -57,6 +57,16 @@ def finite(x: torch.Tensor) -> torch.Tensor:
     return torch.nan_to_num(x, nan=0.0, posinf=0.0, neginf=0.0)
 
 
+def net_intrinsics(intrinsics: torch.Tensor, compat: str | None = None) -> torch.Tensor:
+    """The intrinsics the iterative net's inputs are computed with: the given ones (demon_lab), or
+    under ``compat="demon_original"`` DeMoN's constant (``IterativeNet`` of
+    `python/depthmotionnet/networks_original.py` builds its ``depth_to_flow`` and ``flow_to_depth``
+    with [0.89115971, 1.18821287, 0.5, 0.5], whatever the images)."""
+    if compat != "demon_original":
+        return intrinsics
+    return torch.tensor(geo.DEMON_INTRINSICS, dtype=intrinsics.dtype, device=intrinsics.device).expand_as(intrinsics)
+
+
 def downsample_image(image: torch.Tensor) -> torch.Tensor:
     """Image 2 at level 2, by 4x4 area averaging (the training code's ``resize_area``)."""
     return F.avg_pool2d(image, 4)
@@ -158,6 +168,7 @@ class DeMoN(nn.Module):
                 prev: Prediction, gt2: GroundTruthInputs | None = None,
                 oracle: str | None = None) -> Prediction:
         src = gt2 if oracle == "depth_motion" else prev
+        intrinsics = net_intrinsics(intrinsics, self.compat)
         extra = flow_net_inputs(image2_2, src.inv_depth, src.normals, src.motion, intrinsics, self.compat)
         flowconf5, flowconf2 = self.flow2(pair, extra)
         flow, conf = flowconf2[:, :2], flowconf2[:, 2:]

@@ -72,10 +72,11 @@ def train_stage(cfg: DictConfig, chain: DeMoN, stage: StageDir, logger: L.pytorc
                 progress: bool = True) -> dict[str, float]:
     """Train one stage into ``stage`` (resuming from its last checkpoint); returns figures."""
     spec = cfg.schedule.stages[stage.name]
-    if int(spec.steps) == 0:  # validated: model.weights holds this stage's nets, which it keeps
+    if int(spec.steps) == 0:  # trains nothing: the nets as they are (from model.weights or an earlier stage)
         if global_rank(cfg) == 0:
             stage.save({net: getattr(chain, net).state_dict() for net in TRAINED_NETS[stage.name]})
-        log.info("stage %s: 0 steps: keeps %s from model.weights", stage.name, ", ".join(TRAINED_NETS[stage.name]))
+        log.info("stage %s: 0 steps: keeps %s as they are (from model.weights or an earlier stage)", stage.name,
+                 ", ".join(TRAINED_NETS[stage.name]))
         return {"seconds": 0.0, "steps_per_second": 0.0, "resumed_from_step": 0}
     kind = spec.kind
     kwargs = dict(steps=int(spec.steps), lr=float(spec.lr), lr_schedule=cfg.schedule.lr_schedule,
