@@ -128,22 +128,57 @@ def refine_loss(refined: torch.Tensor, gt: Mapping[str, torch.Tensor], weights: 
     return _weighted(terms), terms
 
 
-def ground_truth(batch: Mapping[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+class GroundTruth(Mapping):
     """DeMoN's ``prepare_ground_truth_tensors`` (`python/depthmotionnet/v2/losses.py`;
-    docs/reference.md §4) from a batch of samples: inverse depth at levels 0, 2, 5 (median
-    pyramid), flow at levels 2 and 5 from depth and motion, normals at levels 0 and 2."""
-    inv0 = batch["inv_depth"]
-    pyramid = geo.inverse_depth_pyramid(inv0, levels=5)
-    k1, k2 = batch["intrinsics"], batch.get("intrinsics2", batch["intrinsics"])
-    motion = batch["motion"]
-    return {
-        "inv_depth0": pyramid[0], "inv_depth2": pyramid[2], "inv_depth5": pyramid[5],
-        "flow2": geo.flow_from_depth_motion(pyramid[2], motion, k1, k2),
-        "flow5": geo.flow_from_depth_motion(pyramid[5], motion, k1, k2),
-        "normals0": geo.normals_from_depth(pyramid[0], k1),
-        "normals2": geo.normals_from_depth(pyramid[2], k1),
-        "motion": motion,
-    }
+    docs/reference.md §4) from a batch of samples, each tensor computed on first access: inverse
+    depth at levels 0, 2, 5 (median pyramid, built only as deep as a key needs), flow at levels 2
+    and 5 from depth and motion, normals at levels 0 and 2, and the motion. A stage reads only
+    what its loss does (the flow stages no normals, the depth-motion stages no level 5), with the
+    same values as computing everything."""
+
+    KEYS = ("inv_depth0", "inv_depth2", "inv_depth5", "flow2", "flow5", "normals0", "normals2", "motion")
+
+    def __init__(self, batch: Mapping[str, torch.Tensor]):
+        self._batch = batch
+        self._values: dict[str, torch.Tensor] = {}
+        self._pyramid: list[torch.Tensor] = []
+
+    def _level(self, k: int) -> torch.Tensor:
+        if not self._pyramid:
+            self._pyramid = geo.inverse_depth_pyramid(self._batch["inv_depth"], levels=0)
+        while len(self._pyramid) <= k:
+            self._pyramid.append(geo.median_downsample(self._pyramid[-1]))
+        return self._pyramid[k]
+
+    def _compute(self, key: str) -> torch.Tensor:
+        b = self._batch
+        k1, k2 = b["intrinsics"], b.get("intrinsics2", b["intrinsics"])
+        if key == "motion":
+            return b["motion"]
+        kind, level = key.rstrip("0123456789"), int(key[-1])
+        if kind == "inv_depth":
+            return self._level(level)
+        if kind == "flow":
+            return geo.flow_from_depth_motion(self._level(level), b["motion"], k1, k2)
+        return geo.normals_from_depth(self._level(level), k1)
+
+    def __getitem__(self, key: str) -> torch.Tensor:
+        if key not in self.KEYS:
+            raise KeyError(key)
+        if key not in self._values:
+            self._values[key] = self._compute(key)
+        return self._values[key]
+
+    def __iter__(self):
+        return iter(self.KEYS)
+
+    def __len__(self) -> int:
+        return len(self.KEYS)
+
+
+def ground_truth(batch: Mapping[str, torch.Tensor]) -> GroundTruth:
+    """The loss targets of a batch (:class:`GroundTruth`, computed as the loss reads them)."""
+    return GroundTruth(batch)
 
 
 def ease_out_quad(step: int, duration: float) -> float:

@@ -666,3 +666,21 @@ def test_data_stats_bad_input_is_one_line(args, message):
     result = _run_stats(*args)
     assert result.returncode == 2
     assert message in result.stderr and len(result.stderr.strip().splitlines()) == 1
+
+
+def test_training_draws_carry_no_normals_map_and_the_same_everything_else(rendered):
+    """A training draw (index, draw seed) is the augmented sample without its normals map (the
+    losses derive theirs from the depth pyramid), every other field bit for bit."""
+    sample = rendered[0]
+    for seed in range(8):
+        full = smp.augment(sample, np.random.default_rng([2, seed]))
+        lean = smp.augment(sample, np.random.default_rng([2, seed]), normals=False)
+        assert "normals" in full and "normals" not in lean and set(full) - set(lean) == {"normals"}
+        assert all(torch.equal(torch.nan_to_num(full[k], nan=-9.0), torch.nan_to_num(lean[k], nan=-9.0))
+                   for k in lean if isinstance(lean[k], torch.Tensor))
+    from demon_lab.data.datasets import SyntheticDataset
+
+    ds = SyntheticDataset("synthetic_sun3d", split="train", length=2, size=(64, 64), augment=True, cache_dir=False)
+    assert "normals" in ds[0] and "normals" not in ds[0, 3]
+    plain = SyntheticDataset("synthetic_sun3d", split="train", length=2, size=(64, 64), augment=False, cache_dir=False)
+    assert "normals" not in plain[0, 3]  # the same keys whatever a source's augmentation: batches collate

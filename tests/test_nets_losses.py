@@ -312,3 +312,28 @@ def test_flow_sig_gradient_swamps_the_flow_term_near_zero_flow():
     print("flow2_sig / flow2 gradient norm:", {k: round(v, 1) for k, v in ratios.items()})
     assert ratios["zero + 0.001"] > 100 and ratios["zero + 0.01"] > 20
     assert ratios["zero + 0.001"] > 5 * ratios["GT + 0.05"]
+
+
+def test_ground_truth_is_computed_as_a_loss_reads_it_with_the_eager_values():
+    """The loss targets are DeMoN's prepare_ground_truth_tensors, tensor by tensor, computed on
+    first access: a flow stage builds no normals and no deeper pyramid than level 5 needs."""
+    from demon_lab import geometry as geo
+
+    torch.manual_seed(5)
+    batch = {"inv_depth": torch.rand(2, 1, 64, 96) + 0.2, "motion": torch.tensor([[0.02, 0.1, 0, 1.0, 0.1, 0]] * 2),
+             "intrinsics": torch.tensor([[0.9, 1.2, 0.5, 0.5]] * 2)}
+    batch["inv_depth"][0, 0, :3, :3] = 0  # invalid pixels become NaN in the pyramid
+    pyramid = geo.inverse_depth_pyramid(batch["inv_depth"], levels=5)
+    k = batch["intrinsics"]
+    eager = {"inv_depth0": pyramid[0], "inv_depth2": pyramid[2], "inv_depth5": pyramid[5],
+             "flow2": geo.flow_from_depth_motion(pyramid[2], batch["motion"], k, k),
+             "flow5": geo.flow_from_depth_motion(pyramid[5], batch["motion"], k, k),
+             "normals0": geo.normals_from_depth(pyramid[0], k), "normals2": geo.normals_from_depth(pyramid[2], k),
+             "motion": batch["motion"]}
+    gt = losses.ground_truth(batch)
+    weights = losses.check_weights(_preset("supplementary"))
+    losses.flow_loss(torch.rand(2, 4, 2, 3), torch.rand(2, 4, 16, 24), gt, weights)
+    assert set(gt._values) == {"flow2", "flow5"}  # what the flow loss read, nothing else
+    assert sorted(gt) == sorted(eager)
+    for key, value in eager.items():
+        assert torch.equal(torch.nan_to_num(gt[key], nan=-1.0), torch.nan_to_num(value, nan=-1.0)), key

@@ -102,8 +102,11 @@ class PairDataset(torch.utils.data.Dataset):
         if self.gt_size is not None:
             truth = sample if self.gt_size == tuple(sample["image1"].shape[1:]) else self._prepare(native, self.gt_size)
             sample.update(gt_inv_depth=truth["inv_depth"], gt_flow=truth["flow"], gt_intrinsics=truth["intrinsics"])
-        if self.augment and draw is not None:
-            sample = smp.augment(sample, np.random.default_rng([self.seed, int(draw)]))
+        if draw is not None:  # a training draw: no normals map (the losses derive theirs from the depth)
+            if self.augment:
+                sample = smp.augment(sample, np.random.default_rng([self.seed, int(draw)]), normals=False)
+            else:
+                sample = {k: v for k, v in sample.items() if k != "normals"}
         if unknown_motion:  # a source without camera poses (DeMoN's nyu2_test.h5): no motion, no flow
             sample["motion"] = torch.full_like(sample["motion"], math.nan)
             for key in ("flow", "gt_flow"):

@@ -317,11 +317,18 @@ def _flip_sample(sample: Sample, dims: tuple[int, ...], sign: torch.Tensor,
     return out
 
 
-def augment(sample: Sample, rng: np.random.Generator) -> Sample:
-    """DeMoN's augmentation: 180-degree rotation and horizontal mirror, each with p = 0.5."""
+def augment(sample: Sample, rng: np.random.Generator, normals: bool = True) -> Sample:
+    """DeMoN's augmentation: 180-degree rotation and horizontal mirror, each with p = 0.5.
+
+    ``normals=False`` returns the sample without its ``normals`` map instead of recomputing it from
+    the augmented depth: the training losses derive their normals from the depth pyramid
+    (:class:`demon_lab.losses.GroundTruth`), and recomputing a map nobody reads was a tenth of a
+    flow1 step at the cpu scale (py-spy)."""
     rotate, flip = rng.random() < 0.5, rng.random() < 0.5
     if rotate:
-        sample = rotate_180(sample, normals=not flip)  # the mirror recomputes them
+        sample = rotate_180(sample, normals=normals and not flip)  # the mirror recomputes them
     if flip:
-        sample = mirror(sample)
+        sample = mirror(sample, normals=normals)
+    if not normals:
+        sample = {k: v for k, v in sample.items() if k != "normals"}
     return sample
