@@ -668,9 +668,10 @@ def test_data_stats_bad_input_is_one_line(args, message):
     assert message in result.stderr and len(result.stderr.strip().splitlines()) == 1
 
 
-def test_training_draws_carry_no_normals_map_and_the_same_everything_else(rendered):
-    """A training draw (index, draw seed) is the augmented sample without its normals map (the
-    losses derive theirs from the depth pyramid), every other field bit for bit."""
+def test_training_draws_carry_what_training_reads_bit_for_bit(rendered):
+    """A training draw (index, draw seed) is the augmented sample with only the fields training
+    reads (no normals, flow or masks: the losses derive theirs from the depth pyramid), each bit
+    for bit as the augmentation of the whole sample gives it."""
     sample = rendered[0]
     for seed in range(8):
         full = smp.augment(sample, np.random.default_rng([2, seed]))
@@ -678,9 +679,17 @@ def test_training_draws_carry_no_normals_map_and_the_same_everything_else(render
         assert "normals" in full and "normals" not in lean and set(full) - set(lean) == {"normals"}
         assert all(torch.equal(torch.nan_to_num(full[k], nan=-9.0), torch.nan_to_num(lean[k], nan=-9.0))
                    for k in lean if isinstance(lean[k], torch.Tensor))
-    from demon_lab.data.datasets import SyntheticDataset
+    from demon_lab.data.datasets import TRAINING_KEYS, SyntheticDataset
 
     ds = SyntheticDataset("synthetic_sun3d", split="train", length=2, size=(64, 64), augment=True, cache_dir=False)
-    assert "normals" in ds[0] and "normals" not in ds[0, 3]
+    draw = ds[0, 3]
+    assert "normals" in ds[0] and set(draw) == set(TRAINING_KEYS)
+    expected = smp.augment({k: v for k, v in ds[0].items() if k in TRAINING_KEYS},
+                           np.random.default_rng([ds.seed, 3]), normals=False)
+    assert all(torch.equal(torch.nan_to_num(draw[k], nan=-9.0), torch.nan_to_num(expected[k], nan=-9.0))
+               for k in draw if isinstance(draw[k], torch.Tensor))
+    full = smp.augment(ds[0], np.random.default_rng([ds.seed, 3]))  # the same draw with every field
+    assert all(torch.equal(torch.nan_to_num(draw[k], nan=-9.0), torch.nan_to_num(full[k], nan=-9.0))
+               for k in draw if isinstance(draw[k], torch.Tensor))
     plain = SyntheticDataset("synthetic_sun3d", split="train", length=2, size=(64, 64), augment=False, cache_dir=False)
-    assert "normals" not in plain[0, 3]  # the same keys whatever a source's augmentation: batches collate
+    assert set(plain[0, 3]) == set(TRAINING_KEYS)  # the same keys whatever a source's augmentation: batches collate

@@ -34,6 +34,11 @@ SPLIT_SEEDS = {"train": 0, "val": 10_000_000, "test": 20_000_000}
 DEFAULT_CACHE = Path(os.environ.get("DEMON_LAB_CACHE", Path.home() / ".cache" / "demon_lab")) / "data"
 
 
+TRAINING_KEYS = ("id", "image1", "image2", "inv_depth", "motion", "intrinsics", "intrinsics2", "baseline")
+"""The fields of a training draw: what the training stages (demon_lab.stages) and their loss targets
+(demon_lab.losses.GroundTruth) read."""
+
+
 class PairDataset(torch.utils.data.Dataset):
     perfect_gt = "no"
     photorealistic = "yes"
@@ -102,11 +107,11 @@ class PairDataset(torch.utils.data.Dataset):
         if self.gt_size is not None:
             truth = sample if self.gt_size == tuple(sample["image1"].shape[1:]) else self._prepare(native, self.gt_size)
             sample.update(gt_inv_depth=truth["inv_depth"], gt_flow=truth["flow"], gt_intrinsics=truth["intrinsics"])
-        if draw is not None:  # a training draw: no normals map (the losses derive theirs from the depth)
+        if draw is not None:  # a training draw: only what the stages and losses read (they derive
+            # flow and normals from the depth and motion), so augmentation flips nothing else
+            sample = {k: v for k, v in sample.items() if k in TRAINING_KEYS}
             if self.augment:
                 sample = smp.augment(sample, np.random.default_rng([self.seed, int(draw)]), normals=False)
-            else:
-                sample = {k: v for k, v in sample.items() if k != "normals"}
         if unknown_motion:  # a source without camera poses (DeMoN's nyu2_test.h5): no motion, no flow
             sample["motion"] = torch.full_like(sample["motion"], math.nan)
             for key in ("flow", "gt_flow"):

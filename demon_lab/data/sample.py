@@ -299,8 +299,10 @@ def _flip_sample(sample: Sample, dims: tuple[int, ...], sign: torch.Tensor,
                  principal: tuple[int, ...], normals: bool = True) -> Sample:
     out = dict(sample)
     for key in MAP_KEYS:
-        out[key] = sample[key].flip(dims)
-    out["flow"] = out["flow"] * sign[:2, None, None]
+        if key in sample:  # a training draw carries only what the losses read
+            out[key] = sample[key].flip(dims)
+    if "flow" in out:
+        out["flow"] = out["flow"] * sign[:2, None, None]
     det = float(sign.prod())  # -1 for a reflection
     r, t = sample["motion"][:3], sample["motion"][3:]
     out["motion"] = torch.cat([det * sign * r, sign * t])
