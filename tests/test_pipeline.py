@@ -105,6 +105,14 @@ def test_stage_runs_record_their_loss_curves(smoke_run):
         history = c.get_metric_history(r.info.run_id, "train/loss")
         assert len(history) >= 1 and all(h.value == h.value for h in history), name
     assert "train/flow2_sig" in stages["flow1"].data.metrics and "train/rotation" in stages["dm1"].data.metrics
+    # held-apart curves (data.val: the synthetic_sun3d validation scenes), at every step at this scale
+    val = "val/synthetic_sun3d"
+    assert [h.step for h in c.get_metric_history(stages["flow1"].info.run_id, f"{val}/epe")] == [1, 2]
+    flow1 = stages["flow1"].data.metrics
+    assert f"{val}/zero_flow_epe" in flow1 and f"{val}/rot_deg" not in flow1
+    for name in ("dm1", "dm2", "iterative"):
+        assert {f"{val}/{k}" for k in ("epe", "rot_deg", "tran_deg", "l1_inv")} <= set(stages[name].data.metrics), name
+    assert f"{val}/l1_inv" in stages["refine"].data.metrics
 
 
 def test_per_sample_metrics_table_matches_the_logged_means(smoke_run):

@@ -101,10 +101,18 @@ def train_stage(cfg: DictConfig, chain: DeMoN, stage: StageDir, logger: L.pytorc
     checkpoint = L.pytorch.callbacks.ModelCheckpoint(
         dirpath=stage.path, filename="step{step}", save_last=True, save_top_k=0,
         every_n_train_steps=max(1, int(cfg.scale.get("checkpoint_every", 50))), auto_insert_metric_name=False)
+    callbacks: list = [checkpoint]
+    if logger is not None and cfg.data.get("val") and global_rank(cfg) == 0:
+        from demon_lab.config import instantiate
+        from demon_lab.stages.validation import StageValidation
+
+        passes = int(spec.iterations) if kind == "refine" else int(stage.name in ("flow2", "dm2", "iterative"))
+        callbacks.append(StageValidation(stage.name, [instantiate(e) for e in cfg.data.val],
+                                         int(cfg.tracking.get("val_every_n_steps", 0)), passes))
     trainer = L.Trainer(
         max_steps=int(spec.steps), accelerator=cfg.trainer.accelerator, devices=int(cfg.trainer.devices),
         num_nodes=int(cfg.trainer.num_nodes), strategy="ddp" if world_size(cfg) > 1 else "auto",
-        logger=logger if logger is not None else False, callbacks=[checkpoint],
+        logger=logger if logger is not None else False, callbacks=callbacks,
         log_every_n_steps=int(cfg.tracking.log_every_n_steps), gradient_clip_val=float(cfg.schedule.grad_clip),
         gradient_clip_algorithm="value", enable_progress_bar=progress, enable_model_summary=False,
         num_sanity_val_steps=0, limit_val_batches=0, deterministic="warn", benchmark=False,
