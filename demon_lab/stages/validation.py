@@ -50,6 +50,7 @@ class StageValidation(L.Callback):
             return
         chain = module.chain
         was_training = {name: net.training for name, net in module.nets()}
+        chain_training = chain.training
         chain.eval()
         try:
             with torch.no_grad():
@@ -57,6 +58,7 @@ class StageValidation(L.Callback):
                 for dataset in self.datasets:
                     values.update({f"val/{dataset.name}/{k}": v for k, v in self._scores(chain, dataset).items()})
         finally:
+            chain.training = chain_training  # the container's own flag, then each net's
             for name, net in module.nets():
                 net.train(was_training[name])
         if not self._zero_logged:
