@@ -333,7 +333,7 @@ def test_ground_truth_is_computed_as_a_loss_reads_it_with_the_eager_values():
     gt = losses.ground_truth(batch)
     weights = losses.check_weights(_preset("supplementary"))
     losses.flow_loss(torch.rand(2, 4, 2, 3), torch.rand(2, 4, 16, 24), gt, weights)
-    assert set(gt._values) == {"flow2", "flow5"}  # what the flow loss read, nothing else
+    assert set(gt._values) == {"flow2", "flow5", "motion"}  # what the flow loss read (no normals, no depth)
     assert sorted(gt) == sorted(eager)
     for key, value in eager.items():
         assert torch.equal(torch.nan_to_num(gt[key], nan=-1.0), torch.nan_to_num(value, nan=-1.0)), key
