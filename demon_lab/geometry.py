@@ -372,6 +372,19 @@ def depth_from_flow_motion(
 # ----------------------------------------------------------------------------- warping
 
 
+def _check_warp_inputs(image: Tensor, flow: Tensor) -> tuple[int, int, int, int]:
+    """A (B, C, H, W) image and a (B, 2, H, W) flow of its size; returns B, C, H, W."""
+    if not isinstance(image, torch.Tensor) or image.dim() != 4:
+        raise ValueError(f"image: expected shape (B, C, H, W), "
+                         f"got {tuple(getattr(image, 'shape', ()))}")
+    _check_map("flow", flow, 2)
+    batch, channels, height, width = image.shape
+    if flow.shape[0] != batch or flow.shape[2:] != image.shape[2:]:
+        raise ValueError(f"flow: expected shape ({batch}, 2, {height}, {width}) to match image, "
+                         f"got {tuple(flow.shape)}")
+    return batch, channels, height, width
+
+
 def warp_image(image: Tensor, flow: Tensor) -> Tensor:
     """Backward-warp image 2 into view 1 with bilinear interpolation (DeMoN's ``warp2d``).
 
@@ -392,14 +405,7 @@ def warp_image(image: Tensor, flow: Tensor) -> Tensor:
     Returns:
         (B, C, H, W) image 2 seen from view 1. Differentiable in ``image`` and ``flow``.
     """
-    if not isinstance(image, torch.Tensor) or image.dim() != 4:
-        raise ValueError(f"image: expected shape (B, C, H, W), "
-                         f"got {tuple(getattr(image, 'shape', ()))}")
-    _check_map("flow", flow, 2)
-    batch, _, height, width = image.shape
-    if flow.shape[0] != batch or flow.shape[2:] != image.shape[2:]:
-        raise ValueError(f"flow: expected shape ({batch}, 2, {height}, {width}) to match image, "
-                         f"got {tuple(flow.shape)}")
+    _, _, height, width = _check_warp_inputs(image, flow)
     # Pixel index p = x + W flow has its 4 neighbours inside iff 0 <= p <= W - 2 after floor,
     # i.e. -x <= W flow < W - 1 - x (likewise for y); NaN compares False.
     xs = torch.arange(width, dtype=flow.dtype, device=flow.device)
@@ -428,14 +434,7 @@ def warp2d(image: Tensor, flow: Tensor) -> Tensor:
 
     Args and returns: as :func:`warp_image`.
     """
-    if not isinstance(image, torch.Tensor) or image.dim() != 4:
-        raise ValueError(f"image: expected shape (B, C, H, W), "
-                         f"got {tuple(getattr(image, 'shape', ()))}")
-    _check_map("flow", flow, 2)
-    batch, channels, height, width = image.shape
-    if flow.shape[0] != batch or flow.shape[2:] != image.shape[2:]:
-        raise ValueError(f"flow: expected shape ({batch}, 2, {height}, {width}) to match image, "
-                         f"got {tuple(flow.shape)}")
+    batch, channels, height, width = _check_warp_inputs(image, flow)
     flow = flow.to(image.dtype)
     xs = torch.arange(width, dtype=image.dtype, device=image.device).view(1, 1, width)
     ys = torch.arange(height, dtype=image.dtype, device=image.device).view(1, height, 1)
