@@ -123,17 +123,26 @@ def evaluate_test_sets(cfg, chain: DeMoN | None, refined: bool) -> list[TestSetR
 
 
 def _evaluate_baseline(cfg, entry, dataset, chain: DeMoN | None, keep: int, histogram: metrics.PixelHistogram):
-    """A classical baseline on one test set (``base_oracle`` reads the same samples at
-    ``baseline.oracle_scale`` times the resolution)."""
+    """A classical baseline on one test set: it reads each pair at ``baseline.size`` (the source's
+    native resolution by default; ``base_mat_f``, which reads the chain's flow, at the chain's) and is
+    scored on the same ground truth as the chain."""
     from omegaconf import OmegaConf
 
     from demon_lab.baselines import BaselineConfig, evaluate_baseline
-    from demon_lab.config import instantiate
 
     params = BaselineConfig(**{**OmegaConf.to_container(cfg.baseline, resolve=True), "seed": int(cfg.seed)})
-    hires = None
-    if cfg.method == "base_oracle":
-        hires = instantiate(entry, size=[int(s) * params.oracle_scale for s in cfg.data.size])
+    inputs = None if cfg.method == "base_mat_f" else baseline_inputs(entry, dataset, params.size)
     return evaluate_baseline(cfg.method, dataset, params, chain=chain, iterations=int(cfg.iterations),
-                             hires_dataset=hires, max_samples=cfg.eval.max_samples, keep=keep,
+                             inputs=inputs, max_samples=cfg.eval.max_samples, keep=keep,
                              histogram=histogram)
+
+
+def baseline_inputs(entry, dataset, size):
+    """The test set ``entry`` (instantiated as ``dataset``) at the baselines' resolution ``size``:
+    ``"native"`` (``dataset.native_size``) or (H, W); ``dataset`` itself when that is its size."""
+    from demon_lab.config import instantiate
+
+    target = dataset.native_size if size == "native" else (int(size[0]), int(size[1]))
+    if target is not None and target == dataset.size:
+        return dataset
+    return instantiate(entry, size=None if target is None else list(target))

@@ -148,7 +148,10 @@ def _baseline(node: DictConfig) -> None:
     _int("baseline.max_correspondences", node.max_correspondences, 8)
     _int("baseline.min_matches", node.min_matches, 8)
     _int("baseline.sweep_hypotheses", node.sweep_hypotheses, 2)
-    _int("baseline.oracle_scale", node.oracle_scale, 1)
+    size = node.size
+    if size != "native" and not (OmegaConf.is_list(size) and len(size) == 2
+                                 and all(isinstance(v, int) and not isinstance(v, bool) and v >= 32 for v in size)):
+        raise ConfigError(f"baseline.size: expected native or [H, W] with sides >= 32 pixels, got {size}")
     window = _int("baseline.sweep_window", node.sweep_window, 1)
     if window % 2 == 0:
         raise ConfigError(f"baseline.sweep_window: expected an odd integer, got {window}")
@@ -205,6 +208,11 @@ def validate(cfg: DictConfig) -> None:
             if isinstance(start, bool) or not isinstance(start, (int, float)) or not 0 <= start <= 1:
                 raise ConfigError(f"schedule.stages.{name}.sig_start: expected a fraction of the stage in "
                                   f"[0, 1] (1: never), got {start!r}")
+        if spec.get("level5_fade") is not None:
+            if spec.kind != "flow":
+                raise ConfigError(f"schedule.stages.{name}.level5_fade: only flow stages have level-5 terms "
+                                  f"(this stage's kind: {spec.kind})")
+            _positive(f"schedule.stages.{name}.level5_fade", spec.level5_fade)
     try:
         check_weights(OmegaConf.to_container(cfg.loss, resolve=True))
     except ValueError as e:

@@ -119,7 +119,7 @@ def sun3d_like(sun3d_test_pairs):
 
 def test_plane_sweep_with_true_motion_finds_the_depth_of_a_rendered_scene(sun3d_like):
     low, high = sun3d_like
-    rows, _ = evaluate_baseline("base_oracle", low, BaselineConfig(), hires_dataset=high)
+    rows, _ = evaluate_baseline("base_oracle", low, BaselineConfig(), inputs=high)
     summary = summarize_baseline(rows)
     assert summary["n_failed"] == 0
     assert summary["rot_deg"] == 0 and summary["tran_deg"] < 1e-3
@@ -173,8 +173,7 @@ def test_degenerate_pairs_are_recorded_failures(sun3d_like):
             return s
 
     for method in ("base_ff", "base_sift", "base_oracle"):
-        hires = Degenerate() if method == "base_oracle" else None
-        rows, _ = evaluate_baseline(method, Degenerate(), BaselineConfig(), hires_dataset=hires)
+        rows, _ = evaluate_baseline(method, Degenerate(), BaselineConfig())
         summary = summarize_baseline(rows)
         assert summary["n_samples"] == 2
         assert summary["n_failed"] >= 1, (method, rows)
@@ -224,7 +223,41 @@ def test_each_baseline_recovers_a_known_motion(known_motion_pair, method):
 
 def test_base_oracle_recovers_the_depth_of_a_textured_scene():
     s = controlled_pair("synthetic_sun3d", 0)
-    out = M.base_oracle(s, BaselineConfig(), s)
+    out = M.base_oracle(s, BaselineConfig())
     truth = {"inv_depth": s["inv_depth"][0], "motion": s["motion"], "intrinsics": s["intrinsics"]}
     scores = metrics.evaluate_sample(out, truth)
     assert scores["l1_rel"] < 0.05 and scores["rot_deg"] == 0 and scores["tran_deg"] < 1e-3, scores
+
+
+def test_baselines_read_each_pair_at_baseline_size_and_score_on_the_chains_ground_truth(sun3d_test_pairs):
+    from demon_lab.data.datasets import MiddleburyDataset
+    from demon_lab.evaluate import baseline_inputs
+
+    low, high, _ = sun3d_test_pairs
+    entry = {"_target_": "demon_lab.data.datasets.SyntheticDataset", "preset": "synthetic_sun3d", "split": "test",
+             "length": 12, "size": [96, 128], "cache_dir": str(low.cache.parent.parent)}
+    native = baseline_inputs(entry, low, "native")  # rendered scenes: DeMoN's 256x192
+    assert native.size == (192, 256) and native is not low
+    assert torch.equal(native[3]["image1"], high[3]["image1"])
+    assert baseline_inputs(entry, low, [96, 128]) is low
+    assert baseline_inputs(entry, low, [48, 64])[0]["image1"].shape == (3, 48, 64)
+    # A source with a resolution of its own is read at it (the Middlebury pair: 741x500 as shipped).
+    mb = MiddleburyDataset(size=[96, 128])
+    stored = MiddleburyDataset()[0]["image1"].shape
+    assert baseline_inputs({"_target_": "demon_lab.data.datasets.MiddleburyDataset", "size": [96, 128]},
+                           mb, "native")[0]["image1"].shape == stored != (3, 96, 128)
+    # Scored on the chain's ground truth: the same rows as scoring the 256x192 prediction by hand.
+    from torch.utils.data import Subset
+
+    pick = [0, 1]
+    rows, kept = evaluate_baseline("base_oracle", Subset(low, pick), BaselineConfig(), inputs=Subset(high, pick),
+                                   keep=1)
+    for i, row in zip(pick, rows, strict=True):
+        pred = M.base_oracle(high[i], BaselineConfig())
+        assert pred["inv_depth"].shape == (192, 256)
+        truth = metrics.ground_truth(low[i], low)
+        truth.pop("flow")
+        assert row["l1_inv"] == metrics.evaluate_sample(pred, truth, **metrics.protocol(low))["l1_inv"]
+    assert kept[0]["inv_depth"].shape == (96, 128)  # shown beside the chain's image 1
+    with pytest.raises(ValueError, match="inputs: expected the 2 pairs"):
+        evaluate_baseline("base_ff", Subset(low, pick), BaselineConfig(), inputs=high)

@@ -261,6 +261,37 @@ def test_flow_stage_sig_terms_start_at_sig_start(sig_start):
     assert (sig[149] == 0) == (sig_start == 0.5) and sig[151] > 0
 
 
+@pytest.mark.parametrize("fade", [None, 1.0, 3.0])
+def test_flow_stage_level5_terms_fade_over_level5_fade(fade):
+    """DeMoN fades the level-5 terms out over the first third of a flow stage; ``level5_fade`` sets
+    that fraction (3: a third of the way down at the stage's end)."""
+    from unittest import mock
+
+    from torch.utils.data import default_collate
+
+    from demon_lab.data.datasets import SyntheticDataset
+    from demon_lab.stages.modules import FlowStage
+
+    torch.manual_seed(0)
+    chain = DeMoN("v1", width=0.0625, size=(64, 64))
+    kwargs = {} if fade is None else {"level5_fade": fade}
+    stage = FlowStage(chain, weights=_preset("released_code"), steps=300, lr=1e-3, net="flow1", sig_start=1.0,
+                      **kwargs)
+    ds = SyntheticDataset("synthetic_sun3d", "train", length=2, size=(64, 64), supersample=1, cache_dir=False)
+    batch = default_collate([{k: v for k, v in ds[i].items() if k != "id"} for i in range(2)])
+    gt = losses.ground_truth(batch)
+    level5 = {}
+    for step in (0, 50, 99, 100, 150, 299):
+        with mock.patch.object(FlowStage, "global_step", new_callable=mock.PropertyMock, return_value=step):
+            _, terms = stage.stage_loss(batch, gt)
+        level5[step] = float(terms.get("flow5", 0.0))
+    duration = 300 * (1 / 3 if fade is None else fade)
+    expected = {s: losses.ease_in_quad_down(s, duration) for s in level5}
+    unit = level5[0]  # the full-weight term
+    assert unit > 0 and level5 == pytest.approx({s: unit * e for s, e in expected.items()}, rel=1e-5)
+    assert (level5[100] == 0) == (fade is None) and (level5[299] > 0) == (fade is not None)
+
+
 @pytest.mark.parametrize("sig_start", [0.0, 0.5, 1.0])
 def test_iterative_stage_flow_sig_terms_start_at_sig_start(sig_start):
     """DeMoN's iterative stage starts at full weights (sig_start 0); with sig_start the flow sig

@@ -22,13 +22,15 @@ __all__ = ["METHODS", "BaselineConfig", "BaselineFailure", "evaluate_baseline", 
 
 @torch.no_grad()
 def evaluate_baseline(method: str, dataset, cfg: BaselineConfig, chain=None, iterations: int = 3,
-                      hires_dataset=None, max_samples: int | None = None,
+                      inputs=None, max_samples: int | None = None,
                       keep: int = 0, histogram: metrics.PixelHistogram | None = None
                       ) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
     """Per-sample metric rows of ``method`` on ``dataset`` and the first ``keep`` predictions.
 
-    ``chain`` (a trained DeMoN) is needed by ``base_mat_f``; ``hires_dataset`` (the same samples at
-    a higher resolution) by ``base_oracle``. ``histogram`` collects per-pixel depth errors.
+    ``inputs``: the same pairs at the resolution the method reads them at (default ``dataset``;
+    ``demon_lab.evaluate.baseline_inputs``); every prediction is scored on ``dataset``'s ground truth.
+    ``chain`` (a trained DeMoN) is needed by ``base_mat_f``, which reads its flow on ``dataset``'s
+    pairs. ``histogram`` collects per-pixel depth errors.
     """
     if method not in METHODS:
         raise ValueError(f"method: expected one of {METHODS}, got {method!r}")
@@ -36,23 +38,27 @@ def evaluate_baseline(method: str, dataset, cfg: BaselineConfig, chain=None, ite
     rows: list[dict[str, Any]] = []
     kept: list[dict[str, Any]] = []
     protocol = metrics.protocol(dataset)
+    inputs = dataset if inputs is None else inputs
+    if len(inputs) != len(dataset):
+        raise ValueError(f"inputs: expected the {len(dataset)} pairs of the test set, got {len(inputs)}")
     for i in range(n):
         sample = dataset[i]
+        pair = sample if inputs is dataset else inputs[i]
         truth = metrics.ground_truth(sample, dataset)
         truth.pop("flow")  # the baselines predict no flow: EPE is not scored
         flow = None
         try:
             if method == "base_ff":
-                pred = base_ff(sample, cfg)
+                pred = base_ff(pair, cfg)
             elif method == "base_sift":
-                pred = base_sift(sample, cfg)
+                pred = base_sift(pair, cfg)
             elif method == "base_mat_f":
                 out = chain(sample["image1"][None], sample["image2"][None], sample["intrinsics"][None],
                             iterations=iterations)
                 flow = out.passes[-1].flow[0].cpu()
                 pred = base_mat_f(sample, cfg, flow)
             else:
-                pred = base_oracle(sample, cfg, hires_dataset[i])
+                pred = base_oracle(pair, cfg)
         except BaselineFailure as e:
             rows.append({"id": sample["id"], "it": "baseline", "failed": str(e)})
             continue
@@ -63,7 +69,8 @@ def evaluate_baseline(method: str, dataset, cfg: BaselineConfig, chain=None, ite
         if len(kept) < keep:
             kept.append({"id": sample["id"], "image1": sample["image1"], "gt_inv_depth": sample["inv_depth"][0],
                          "gt_motion": sample["motion"],
-                         "inv_depth": torch.as_tensor(np.asarray(pred["inv_depth"], dtype=np.float32)),
+                         "inv_depth": torch.as_tensor(metrics.resize_nearest(  # shown beside image 1
+                             pred["inv_depth"], tuple(sample["inv_depth"].shape[1:])).astype(np.float32)),
                          "flow": flow if flow is not None else torch.zeros(2, *sample["inv_depth"].shape[1:]),
                          "normals": torch.zeros(3, *sample["inv_depth"].shape[1:]),
                          "intrinsics": sample["intrinsics"]})

@@ -57,7 +57,7 @@ class BaselineConfig:
     sweep_hypotheses: int = 160
     sweep_window: int = 7
     sweep_max_disparity: float = 0.6
-    oracle_scale: int = 2
+    size: Any = "native"  # the resolution the pairs are read at: demon_lab.evaluate reads them
     seed: int = 0
 
 
@@ -178,13 +178,13 @@ def plane_sweep(image1: torch.Tensor, image2: torch.Tensor, intrinsics: torch.Te
     return (xi[best].float() + offset * step).clamp(min=float(xi[0]))
 
 
-def base_oracle(sample: Mapping[str, Any], cfg: BaselineConfig, hires: Mapping[str, Any]) -> dict[str, np.ndarray]:
-    """``hires``: the same sample at ``oracle_scale`` times the resolution (same scene and cameras)."""
+def base_oracle(sample: Mapping[str, Any], cfg: BaselineConfig) -> dict[str, np.ndarray]:
+    """A plane sweep of the pair with its ground-truth motion (the paper's Base-Oracle)."""
     motion = sample["motion"].double()
     t = motion[3:].norm()
     if t < 1e-9:
         raise BaselineFailure("zero-baseline pair: plane sweep has no parallax")
     unit = torch.cat([motion[:3], motion[3:] / t])
-    inv = plane_sweep(hires["image1"], hires["image2"], hires["intrinsics"], unit, cfg.sweep_hypotheses,
+    inv = plane_sweep(sample["image1"], sample["image2"], sample["intrinsics"], unit, cfg.sweep_hypotheses,
                       cfg.sweep_window, cfg.sweep_max_disparity)
     return {"inv_depth": inv.numpy(), "motion": unit.numpy()}

@@ -43,6 +43,7 @@ class PairDataset(torch.utils.data.Dataset):
     perfect_gt = "no"
     photorealistic = "yes"
     outdoor = "no"
+    native_size: tuple[int, int] | None = None  # (H, W) of a pair at its own resolution; None: as stored
 
     def __init__(
         self,
@@ -143,6 +144,7 @@ class SyntheticDataset(PairDataset):
 
     perfect_gt = "yes"
     photorealistic = "no"
+    native_size = (192, 256)  # scenes have no resolution of their own: DeMoN's
 
     def __init__(self, preset: str, split: str = "train", length: int = 1000,
                  size: Sequence[int] = (96, 128), supersample: int = 2,

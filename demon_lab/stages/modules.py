@@ -27,15 +27,16 @@ class FlowStage(StageModule):
     third; the level-5 losses fade out over it (DeMoN's `training/v2/training.py`; docs/reference.md §4).
 
     ``sig_start`` (a fraction of the stage, default 0 as DeMoN; 1: never) holds the sig weights at 0 until
-    then and starts their ramp there. A short schedule needs it: near zero flow the sig term's
+    then and starts their ramp there; ``level5_fade`` (a fraction of the stage, default DeMoN's 1/3) is
+    how long the level-5 terms take to fade out. A short schedule needs both: near zero flow the sig term's
     gradient is ~55-250x the flow term's (11-18x near the ground truth; see the test
     ``test_flow_sig_gradient_swamps_the_flow_term_near_zero_flow``), and a stage of 1/400 of
     DeMoN's length gives the net ~830 steps instead of ~333,000 to find correspondence first.
     """
 
-    def __init__(self, *args, net: str = "flow1", sig_start: float = 0.0, **kwargs):
+    def __init__(self, *args, net: str = "flow1", sig_start: float = 0.0, level5_fade: float = 1 / 3, **kwargs):
         super().__init__(*args, trained=[net], **kwargs)
-        self.net, self.sig_start = net, float(sig_start)
+        self.net, self.sig_start, self.level5_fade = net, float(sig_start), float(level5_fade)
 
     def stage_loss(self, batch, gt):
         pair, image2_2, K = self.inputs(batch)
@@ -48,7 +49,7 @@ class FlowStage(StageModule):
                 extra = flow_net_inputs(image2_2, src.inv_depth, src.normals, src.motion, K, self.chain.compat)
             flow5, flow2 = self.chain.flow2(pair, extra)
         return losses.flow_loss(flow5, flow2, gt, self.weights, ramp=self.ramp(1 / 3, self.sig_start),
-                                 level5=self.level5(1 / 3))
+                                 level5=self.level5(self.level5_fade))
 
 
 class DepthMotionStage(StageModule):
