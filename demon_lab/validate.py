@@ -213,6 +213,14 @@ def validate(cfg: DictConfig) -> None:
                 raise ConfigError(f"schedule.stages.{name}.level5_fade: only flow stages have level-5 terms "
                                   f"(this stage's kind: {spec.kind})")
             _positive(f"schedule.stages.{name}.level5_fade", spec.level5_fade)
+        if spec.get("gt_flow_warmup") is not None:
+            warmup = spec.gt_flow_warmup
+            if spec.kind != "depth_motion":
+                raise ConfigError(f"schedule.stages.{name}.gt_flow_warmup: only depth-motion stages are fed flow "
+                                  f"(this stage's kind: {spec.kind})")
+            if isinstance(warmup, bool) or not isinstance(warmup, (int, float)) or not 0 <= warmup <= 1:
+                raise ConfigError(f"schedule.stages.{name}.gt_flow_warmup: expected a fraction of the stage in "
+                                  f"[0, 1], got {warmup!r}")
     try:
         check_weights(OmegaConf.to_container(cfg.loss, resolve=True))
     except ValueError as e:

@@ -235,7 +235,7 @@ def test_baselines_read_each_pair_at_baseline_size_and_score_on_the_chains_groun
 
     low, high, _ = sun3d_test_pairs
     entry = {"_target_": "demon_lab.data.datasets.SyntheticDataset", "preset": "synthetic_sun3d", "split": "test",
-             "length": 12, "size": [96, 128], "cache_dir": str(low.cache.parent.parent)}
+             "length": 12, "size": [96, 128], "cache_dir": str(low.cache.parents[1])}  # the fixture's
     native = baseline_inputs(entry, low, "native")  # rendered scenes: DeMoN's 256x192
     assert native.size == (192, 256) and native is not low
     assert torch.equal(native[3]["image1"], high[3]["image1"])

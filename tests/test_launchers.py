@@ -8,7 +8,7 @@ from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
 from demon_lab.__main__ import CONF, _job_overrides
-from tests.test_pipeline import EXPERIMENTS
+from tests.test_pipeline import SWEPT
 
 LAUNCHERS = {
     "basic": "hydra._internal.core_plugins.basic_launcher.BasicLauncher",
@@ -16,7 +16,7 @@ LAUNCHERS = {
     "slurm": "hydra_plugins.hydra_submitit_launcher.submitit_launcher.SlurmLauncher",
     "slurm_ddp": "hydra_plugins.hydra_submitit_launcher.submitit_launcher.SlurmLauncher",
 }
-SWEEPS = [[f"+experiment={e}"] for e in EXPERIMENTS] + [["iterations=0,1,2,3,4,5"]]
+SWEEPS = [[f"+experiment={e}"] for e in SWEPT] + [["iterations=0,1,2,3,4,5"]]
 
 
 @pytest.mark.parametrize("launcher", list(LAUNCHERS))

@@ -292,6 +292,48 @@ def test_flow_stage_level5_terms_fade_over_level5_fade(fade):
     assert (level5[100] == 0) == (fade is None) and (level5[299] > 0) == (fade is not None)
 
 
+@pytest.mark.parametrize("warmup", [0.0, 0.5])
+def test_depth_motion_stage_is_fed_ground_truth_flow_for_gt_flow_warmup(warmup):
+    """``gt_flow_warmup``: ground-truth flow (with full confidence) for that first part of the stage,
+    the frozen flow net's output after it; 0 (DeMoN): the flow net's throughout."""
+    from unittest import mock
+
+    from torch.utils.data import default_collate
+
+    from demon_lab.data.datasets import SyntheticDataset
+    from demon_lab.nets.chain import ground_truth_inputs
+    from demon_lab.stages import modules
+    from demon_lab.stages.modules import DepthMotionStage
+
+    torch.manual_seed(0)
+    chain = DeMoN("v1", width=0.0625, size=(64, 64))
+    stage = DepthMotionStage(chain, weights=_preset("released_code"), steps=300, lr=1e-3, net="dm1",
+                             gt_flow_warmup=warmup)
+    ds = SyntheticDataset("synthetic_sun3d", "train", length=2, size=(64, 64), supersample=1, cache_dir=False)
+    batch = default_collate([{k: v for k, v in ds[i].items() if k != "id"} for i in range(2)])
+    pair = torch.cat([batch["image1"], batch["image2"]], 1)
+    truth = ground_truth_inputs(batch, batch["intrinsics"]).flow
+    with torch.no_grad():
+        predicted = chain.flow1(pair)[1][:, :2]
+    fed = {}
+    real = modules.depth_motion_net_inputs
+    for step in (0, 149, 150, 299):
+        def spy(image2_2, flow, conf, *args, _step=step):
+            fed[_step] = (flow.clone(), conf.clone())
+            return real(image2_2, flow, conf, *args)
+
+        with mock.patch.object(DepthMotionStage, "global_step", new_callable=mock.PropertyMock, return_value=step), \
+                mock.patch.object(modules, "depth_motion_net_inputs", spy):
+            stage.stage_loss(batch, losses.ground_truth(batch))
+    for step, (flow, conf) in fed.items():
+        if step < warmup * 300:
+            assert torch.equal(flow.nan_to_num(7.0), truth.nan_to_num(7.0)), step
+            assert torch.equal(conf, torch.isfinite(truth).float()), step
+        else:
+            assert torch.equal(flow, predicted), step
+    assert not torch.equal(truth.nan_to_num(0.0), predicted)
+
+
 @pytest.mark.parametrize("sig_start", [0.0, 0.5, 1.0])
 def test_iterative_stage_flow_sig_terms_start_at_sig_start(sig_start):
     """DeMoN's iterative stage starts at full weights (sig_start 0); with sig_start the flow sig

@@ -209,6 +209,9 @@ def test_a_job_that_raises_leaves_its_run_failed(tmp_path):
     (["schedule.stages.flow1.warmup_steps=-5"], "schedule.stages.flow1.warmup_steps: expected an integer >= 0"),
     (["+schedule.stages.flow1.level5_fade=0"], "schedule.stages.flow1.level5_fade: expected a positive number"),
     (["+schedule.stages.dm1.level5_fade=1"], "schedule.stages.dm1.level5_fade: only flow stages have level-5 terms"),
+    (["+schedule.stages.dm1.gt_flow_warmup=1.5"],
+     "schedule.stages.dm1.gt_flow_warmup: expected a fraction of the stage in [0, 1]"),
+    (["+schedule.stages.flow1.gt_flow_warmup=0.5"], "schedule.stages.flow1.gt_flow_warmup: only depth-motion"),
     (["baseline.size=[16,16]"], "baseline.size: expected native or [H, W] with sides >= 32 pixels"),
     (["data.real_pair=/does/not/exist"], "data.test[3].path (data.real_pair): /does/not/exist: no such file"),
     (["data=pair_folder", "data.path=/no/pairs"], "data.test[0].path (data.path): /no/pairs: no such file"),
@@ -235,9 +238,12 @@ def test_documented_configurations_compose_and_validate(overrides):
 EXPERIMENTS = sorted(p.stem for p in (resources.CONF / "experiment").glob("*.yaml") if p.stem != "released_model")
 """The experiments that run on demon_lab's own data (released_model needs DeMoN's files and weights:
 tests/test_released.py)."""
+SWEPT = [e for e in EXPERIMENTS if e != "cpu_recipe"]
+"""The experiments that declare a sweep (cpu_recipe's probes are single jobs, the commands of
+demon_lab/studies/cpu_recipe.yaml, which tests/test_report.py composes)."""
 
 
-@pytest.mark.parametrize("experiment", EXPERIMENTS)
+@pytest.mark.parametrize("experiment", SWEPT)
 @pytest.mark.parametrize("scale", ["smoke", "cpu", "paper"])
 def test_every_experiment_sweep_composes_and_validates(experiment, scale):
     """Each job of an experiment's declared sweep (hydra.sweeper.params) composes and validates."""

@@ -56,16 +56,22 @@ class DepthMotionStage(StageModule):
     """Trains ``dm1`` (fed by the frozen flow1) or ``dm2`` (fed by the frozen flow2 on top of the
     bootstrap net, and the bootstrap motion). With ``oracle='flow'`` it is fed ground-truth flow.
     The depth-sig weight ramps over twice the stage for dm1 (DeMoN's 2M-step ramp in a 1M-step
-    stage) and over the stage for dm2."""
+    stage) and over the stage for dm2.
 
-    def __init__(self, *args, net: str = "dm1", **kwargs):
+    ``gt_flow_warmup`` (a fraction of the stage, default 0 as DeMoN) feeds ground-truth flow, as the
+    oracle does, for that first part of the stage, and the flow net's from then on: the net learns
+    to read motion from a flow that shows it before it meets the flow it will be given.
+    """
+
+    def __init__(self, *args, net: str = "dm1", gt_flow_warmup: float = 0.0, **kwargs):
         super().__init__(*args, trained=[net], **kwargs)
-        self.net = net
+        self.net, self.gt_flow_warmup = net, float(gt_flow_warmup)
 
     def stage_loss(self, batch, gt):
         pair, image2_2, K = self.inputs(batch)
         with torch.no_grad():
-            gt2 = ground_truth_inputs(batch, K) if self.oracle == "flow" else None
+            given = self.oracle == "flow" or self.global_step < self.gt_flow_warmup * self.steps
+            gt2 = ground_truth_inputs(batch, K) if given else None
             prev_motion = None
             if self.net == "dm1":
                 flow, conf = _flow_and_conf(self.chain.flow1(pair)[1])

@@ -91,6 +91,8 @@ def train_stage(cfg: DictConfig, chain: DeMoN, stage: StageDir, logger: L.pytorc
         kwargs.update(sig_start=float(spec.get("sig_start", 0.0)))
     if kind == "flow" and spec.get("level5_fade") is not None:
         kwargs.update(level5_fade=float(spec.level5_fade))
+    if kind == "depth_motion" and spec.get("gt_flow_warmup") is not None:
+        kwargs.update(gt_flow_warmup=float(spec.gt_flow_warmup))
     module = STAGE_KINDS[kind](chain, weights=OmegaConf.to_container(cfg.loss, resolve=True), **kwargs)
     batch = int(spec.get("batch_size") or cfg.data.batch_size)
     resume = stage.last_checkpoint if stage.last_checkpoint.is_file() else None
