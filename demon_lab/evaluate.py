@@ -143,6 +143,7 @@ def baseline_inputs(entry, dataset, size):
     from demon_lab.config import instantiate
 
     target = dataset.native_size if size == "native" else (int(size[0]), int(size[1]))
-    if target is not None and target == dataset.size:
+    if target == dataset.size:
         return dataset
-    return instantiate(entry, size=None if target is None else list(target))
+    # the inputs only: the scoring reads the ground truth of ``dataset``
+    return instantiate(entry, size=None if target is None else list(target), gt_size=None, eigen_crop=False)

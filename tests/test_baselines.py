@@ -241,11 +241,19 @@ def test_baselines_read_each_pair_at_baseline_size_and_score_on_the_chains_groun
     assert torch.equal(native[3]["image1"], high[3]["image1"])
     assert baseline_inputs(entry, low, [96, 128]) is low
     assert baseline_inputs(entry, low, [48, 64])[0]["image1"].shape == (3, 48, 64)
-    # A source with a resolution of its own is read at it (the Middlebury pair: 741x500 as shipped).
-    mb = MiddleburyDataset(size=[96, 128])
-    stored = MiddleburyDataset()[0]["image1"].shape
-    assert baseline_inputs({"_target_": "demon_lab.data.datasets.MiddleburyDataset", "size": [96, 128]},
-                           mb, "native")[0]["image1"].shape == stored != (3, 96, 128)
+    # A source with a resolution of its own is read at it (the Middlebury pair: 741x500 as shipped),
+    # with DeMoN's intrinsics when the chain's set has them (the same crop, at the native size).
+    entry_mb = {"_target_": "demon_lab.data.datasets.MiddleburyDataset", "size": [96, 128]}
+    stored = MiddleburyDataset()[0]
+    native_mb = baseline_inputs(entry_mb, MiddleburyDataset(size=[96, 128]), "native")[0]
+    assert native_mb["image1"].shape == stored["image1"].shape != (3, 96, 128)
+    assert torch.equal(native_mb["intrinsics"], stored["intrinsics"])
+    fixed = baseline_inputs({**entry_mb, "fixed_intrinsics": True},
+                            MiddleburyDataset(size=[96, 128], fixed_intrinsics=True), "native")[0]
+    assert fixed["image1"].shape == stored["image1"].shape
+    torch.testing.assert_close(fixed["intrinsics"].double(), torch.tensor(geo.DEMON_INTRINSICS).double())
+    unsized = MiddleburyDataset()
+    assert baseline_inputs({"_target_": "demon_lab.data.datasets.MiddleburyDataset"}, unsized, "native") is unsized
     # Scored on the chain's ground truth: the same rows as scoring the 256x192 prediction by hand.
     from torch.utils.data import Subset
 
@@ -261,3 +269,27 @@ def test_baselines_read_each_pair_at_baseline_size_and_score_on_the_chains_groun
     assert kept[0]["inv_depth"].shape == (96, 128)  # shown beside the chain's image 1
     with pytest.raises(ValueError, match="inputs: expected the 2 pairs"):
         evaluate_baseline("base_ff", Subset(low, pick), BaselineConfig(), inputs=high)
+
+
+def test_a_baseline_job_reads_its_pairs_at_baseline_size(sun3d_test_pairs, monkeypatch):
+    """``evaluate_test_sets`` with a baseline method: the pairs reach the method at ``baseline.size``
+    (base_mat_f, on the chain's flow, at the chain's size) and are scored on the chain's test set."""
+    from omegaconf import OmegaConf
+
+    from demon_lab import evaluate, resources
+
+    low, _, _ = sun3d_test_pairs
+    seen = []
+    real = M.base_oracle
+    monkeypatch.setattr("demon_lab.baselines.base_oracle", lambda s, c: seen.append(s["image1"].shape) or real(s, c))
+    entry = {"_target_": "demon_lab.data.datasets.SyntheticDataset", "preset": "synthetic_sun3d", "split": "test",
+             "length": 12, "size": [96, 128], "cache_dir": str(low.cache.parents[1])}
+    for size, shape in (("native", (3, 192, 256)), ([96, 128], (3, 96, 128))):
+        cfg = OmegaConf.create({"method": "base_oracle", "seed": 0, "iterations": 3, "oracle": None,
+                                "data": {"test": [entry], "size": [96, 128]},
+                                "baseline": {**OmegaConf.to_container(OmegaConf.load(
+                                    resources.CONF / "baseline" / "default.yaml")), "size": size},
+                                "eval": {"visualize": 0, "point_clouds": 0, "max_samples": 1, "batch_size": 1}})
+        seen.clear()
+        (result,) = evaluate.evaluate_test_sets(cfg, None, refined=False)
+        assert seen == [shape] and result.summary["n_samples"] == 1 and result.summary["n_failed"] == 0, size

@@ -264,7 +264,7 @@ def test_flow_stage_sig_terms_start_at_sig_start(sig_start):
 @pytest.mark.parametrize("fade", [None, 1.0, 3.0])
 def test_flow_stage_level5_terms_fade_over_level5_fade(fade):
     """DeMoN fades the level-5 terms out over the first third of a flow stage; ``level5_fade`` sets
-    that fraction (3: a third of the way down at the stage's end)."""
+    that fraction (3: at the stage's end the term is still at 1 - (1/3)^2 of its weight)."""
     from unittest import mock
 
     from torch.utils.data import default_collate

@@ -213,6 +213,7 @@ def test_a_job_that_raises_leaves_its_run_failed(tmp_path):
      "schedule.stages.dm1.gt_flow_warmup: expected a fraction of the stage in [0, 1]"),
     (["+schedule.stages.flow1.gt_flow_warmup=0.5"], "schedule.stages.flow1.gt_flow_warmup: only depth-motion"),
     (["baseline.size=[16,16]"], "baseline.size: expected native or [H, W] with sides >= 32 pixels"),
+    (["baseline.size=full"], "baseline.size: expected native or [H, W] with sides >= 32 pixels, got full"),
     (["data.real_pair=/does/not/exist"], "data.test[3].path (data.real_pair): /does/not/exist: no such file"),
     (["data=pair_folder", "data.path=/no/pairs"], "data.test[0].path (data.path): /no/pairs: no such file"),
     (["data=tum", "data.root=/no/tum"], "data.test[0].root (data.root): /no/tum: no such file or directory"),
@@ -272,6 +273,24 @@ def test_longer_oracle_study_trains_dm1_four_times_the_profile_and_shares_flow1(
     assert long.schedule.stages.dm1.steps == 4 * base.scale.steps.dm1 == 4 * base.schedule.stages.dm1.steps
     (flow1, dm1), (flow1_long, dm1_long) = stage_dirs(base), stage_dirs(long)
     assert flow1.key == flow1_long.key and dm1.key != dm1_long.key
+
+
+@pytest.mark.parametrize("scale", ["smoke", "cpu", "paper"])
+def test_the_probe_options_are_absent_from_every_profile_and_key_only_their_stage_and_later(scale):
+    """level5_fade and gt_flow_warmup exist for probes (studies/cpu_recipe.yaml): no profile sets them,
+    so no key holds them; set, they key their own stage and, through the upstream keys, the later ones."""
+    from demon_lab.stages.schedule import stage_dirs
+
+    with initialize_config_dir(CONF, version_base="1.3"):
+        plain = compose("config", [f"scale={scale}"])
+        fade = compose("config", [f"scale={scale}", "+schedule.stages.flow1.level5_fade=1.0"])
+        warm = compose("config", [f"scale={scale}", "+schedule.stages.dm1.gt_flow_warmup=0.5"])
+    for spec in plain.schedule.stages.values():
+        assert "level5_fade" not in spec and "gt_flow_warmup" not in spec
+    keys = {name: [d.key for d in stage_dirs(cfg)] for name, cfg in (("plain", plain), ("fade", fade), ("warm", warm))}
+    assert all(a != b for a, b in zip(keys["plain"], keys["fade"], strict=True))
+    assert keys["warm"][0] == keys["plain"][0] and all(a != b for a, b in zip(keys["plain"][1:], keys["warm"][1:],
+                                                                             strict=True))
 
 
 def test_a_stage_key_holds_only_the_loss_weights_that_stage_reads():

@@ -9,8 +9,10 @@ scored by ``demon_lab.metrics.evaluate_sample`` exactly like the networks:
 * ``base_sift`` — SIFT matches with the ratio test, 8-point in RANSAC, depth as ``base_ff``;
 * ``base_mat_f`` — Nister's 5-point in RANSAC (``cv2.findEssentialMat``) on the flow predicted by
   the trained DeMoN chain, depth by triangulating that flow;
-* ``base_oracle`` — ground-truth motion and plane-sweep stereo at a higher resolution than the
-  network's (the paper's Base-Oracle uses 640x480 against DeMoN's 256x192).
+* ``base_oracle`` — ground-truth motion and plane-sweep stereo.
+
+``demon_lab.evaluate`` gives the methods each pair at ``baseline.size`` (by default the source's own
+resolution, whatever the network reads: the paper's baselines ran at 640x480 where DeMoN read 256x192).
 """
 
 from __future__ import annotations

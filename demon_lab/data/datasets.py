@@ -122,6 +122,8 @@ class PairDataset(torch.utils.data.Dataset):
 
     def _prepare(self, sample: smp.Sample, size: tuple[int, int] | None) -> smp.Sample:
         target = smp.geo.DEMON_INTRINSICS if self.fixed_intrinsics else None
+        if size is None and target is not None:  # the native resolution, cropped to DeMoN's intrinsics
+            size = tuple(sample["image1"].shape[1:])
         if size is not None and (tuple(sample["image1"].shape[1:]) != size or target):
             sample = smp.resample(sample, size, target)
         if self.normalize_translation:
