@@ -293,6 +293,39 @@ def test_the_probe_options_are_absent_from_every_profile_and_key_only_their_stag
                                                                              strict=True))
 
 
+def test_train_stage_hands_the_probe_options_to_their_stages(tmp_path, monkeypatch):
+    """A flow stage gets level5_fade, a depth-motion stage gt_flow_warmup, from the stage's config;
+    a stage without them gets DeMoN's values (its module's defaults)."""
+    from demon_lab.stages import training
+    from demon_lab.stages.schedule import build_chain, stage_dirs
+
+    class Built(Exception):
+        pass
+
+    given = {}
+
+    def capture(kind):
+        def make(chain, weights, **kwargs):
+            given[kind] = kwargs
+            raise Built
+        return make
+
+    monkeypatch.setattr(training, "STAGE_KINDS", {k: capture(k) for k in ("flow", "depth_motion", "iterative",
+                                                                         "refine")})
+    with initialize_config_dir(CONF, version_base="1.3"):
+        cfg = compose("config", ["scale=smoke", f"cache_dir={tmp_path}", "+schedule.stages.flow1.level5_fade=0.75",
+                                 "+schedule.stages.dm1.gt_flow_warmup=0.4"])
+        plain = compose("config", ["scale=smoke", f"cache_dir={tmp_path}"])
+    for config, expect in ((cfg, {"flow": {"level5_fade": 0.75}, "depth_motion": {"gt_flow_warmup": 0.4}}),
+                           (plain, {"flow": {}, "depth_motion": {}})):
+        chain = build_chain(config)
+        for stage in stage_dirs(config)[:2]:  # flow1, dm1
+            with pytest.raises(Built):
+                training.train_stage(config, chain, stage, logger=None, progress=False)
+        assert {k: v for k, v in given["flow"].items() if k == "level5_fade"} == expect["flow"]
+        assert {k: v for k, v in given["depth_motion"].items() if k == "gt_flow_warmup"} == expect["depth_motion"]
+
+
 def test_a_stage_key_holds_only_the_loss_weights_that_stage_reads():
     """The loss-weight study's presets share every stage whose loss they leave unchanged:
     no_normals and depth_sig_1000 change depth-motion weights only, so they share supplementary's
