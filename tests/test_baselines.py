@@ -229,13 +229,18 @@ def test_base_oracle_recovers_the_depth_of_a_textured_scene():
     assert scores["l1_rel"] < 0.05 and scores["rot_deg"] == 0 and scores["tran_deg"] < 1e-3, scores
 
 
+def _test_entry(dataset) -> dict:
+    """The config entry of ``sun3d_test_pairs``' 96x128 set (its cache folder included)."""
+    return {"_target_": "demon_lab.data.datasets.SyntheticDataset", "preset": "synthetic_sun3d", "split": "test",
+            "length": len(dataset), "size": [96, 128], "cache_dir": str(dataset.cache.parents[1])}
+
+
 def test_baselines_read_each_pair_at_baseline_size_and_score_on_the_chains_ground_truth(sun3d_test_pairs):
     from demon_lab.data.datasets import MiddleburyDataset
     from demon_lab.evaluate import baseline_inputs
 
     low, high, _ = sun3d_test_pairs
-    entry = {"_target_": "demon_lab.data.datasets.SyntheticDataset", "preset": "synthetic_sun3d", "split": "test",
-             "length": 12, "size": [96, 128], "cache_dir": str(low.cache.parents[1])}  # the fixture's
+    entry = _test_entry(low)
     native = baseline_inputs(entry, low, "native")  # rendered scenes: DeMoN's 256x192
     assert native.size == (192, 256) and native is not low
     assert torch.equal(native[3]["image1"], high[3]["image1"])
@@ -273,7 +278,7 @@ def test_baselines_read_each_pair_at_baseline_size_and_score_on_the_chains_groun
 
 def test_a_baseline_job_reads_its_pairs_at_baseline_size(sun3d_test_pairs, monkeypatch):
     """``evaluate_test_sets`` with a baseline method: the pairs reach the method at ``baseline.size``
-    (base_mat_f, on the chain's flow, at the chain's size) and are scored on the chain's test set."""
+    and are scored on the chain's test set."""
     from omegaconf import OmegaConf
 
     from demon_lab import evaluate, resources
@@ -282,8 +287,7 @@ def test_a_baseline_job_reads_its_pairs_at_baseline_size(sun3d_test_pairs, monke
     seen = []
     real = M.base_oracle
     monkeypatch.setattr("demon_lab.baselines.base_oracle", lambda s, c: seen.append(s["image1"].shape) or real(s, c))
-    entry = {"_target_": "demon_lab.data.datasets.SyntheticDataset", "preset": "synthetic_sun3d", "split": "test",
-             "length": 12, "size": [96, 128], "cache_dir": str(low.cache.parents[1])}
+    entry = _test_entry(low)
     for size, shape in (("native", (3, 192, 256)), ([96, 128], (3, 96, 128))):
         cfg = OmegaConf.create({"method": "base_oracle", "seed": 0, "iterations": 3, "oracle": None,
                                 "data": {"test": [entry], "size": [96, 128]},

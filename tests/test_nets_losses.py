@@ -232,26 +232,37 @@ def test_warmup_rises_linearly_to_the_schedule():
     assert learning_rate(2999, 3000, 1e-3, "released", warmup_steps=100) == learning_rate(2999, 3000, 1e-3, "released")
 
 
-@pytest.mark.parametrize("sig_start", [0.0, 0.5, 1.0])
-def test_flow_stage_sig_terms_start_at_sig_start(sig_start):
-    from unittest import mock
-
+def _stage_batch() -> dict:
+    """Two rendered 64x64 training pairs (not cached), batched, for the stage tests below."""
     from torch.utils.data import default_collate
 
     from demon_lab.data.datasets import SyntheticDataset
+
+    ds = SyntheticDataset("synthetic_sun3d", "train", length=2, size=(64, 64), supersample=1, cache_dir=False)
+    return default_collate([{k: v for k, v in ds[i].items() if k != "id"} for i in range(2)])
+
+
+def _terms_at(stage, batch, gt, steps) -> dict[int, dict]:
+    """The stage's loss terms on ``batch`` with its global step at each of ``steps``."""
+    from unittest import mock
+
+    out = {}
+    for step in steps:
+        with mock.patch.object(type(stage), "global_step", new_callable=mock.PropertyMock, return_value=step):
+            out[step] = {k: float(v) for k, v in stage.stage_loss(batch, gt)[1].items()}
+    return out
+
+
+@pytest.mark.parametrize("sig_start", [0.0, 0.5, 1.0])
+def test_flow_stage_sig_terms_start_at_sig_start(sig_start):
     from demon_lab.stages.modules import FlowStage
 
     torch.manual_seed(0)
     chain = DeMoN("v1", width=0.0625, size=(64, 64))
     stage = FlowStage(chain, weights=_preset("released_code"), steps=300, lr=1e-3, net="flow1", sig_start=sig_start)
-    ds = SyntheticDataset("synthetic_sun3d", "train", length=2, size=(64, 64), supersample=1, cache_dir=False)
-    batch = default_collate([{k: v for k, v in ds[i].items() if k != "id"} for i in range(2)])
-    gt = losses.ground_truth(batch)
-    sig = {}
-    for step in (0, 100, 149, 151, 250, 299):
-        with mock.patch.object(FlowStage, "global_step", new_callable=mock.PropertyMock, return_value=step):
-            _, terms = stage.stage_loss(batch, gt)
-        sig[step] = float(terms["flow2_sig"])
+    batch = _stage_batch()
+    terms = _terms_at(stage, batch, losses.ground_truth(batch), (0, 100, 149, 151, 250, 299))
+    sig = {step: t["flow2_sig"] for step, t in terms.items()}
     if sig_start == 1.0:  # never: the whole stage trains without the sig terms
         assert set(sig.values()) == {0.0}
         return
@@ -265,11 +276,6 @@ def test_flow_stage_sig_terms_start_at_sig_start(sig_start):
 def test_flow_stage_level5_terms_fade_over_level5_fade(fade):
     """DeMoN fades the level-5 terms out over the first third of a flow stage; ``level5_fade`` sets
     that fraction (3: at the stage's end the term is still at 1 - (1/3)^2 of its weight)."""
-    from unittest import mock
-
-    from torch.utils.data import default_collate
-
-    from demon_lab.data.datasets import SyntheticDataset
     from demon_lab.stages.modules import FlowStage
 
     torch.manual_seed(0)
@@ -277,14 +283,9 @@ def test_flow_stage_level5_terms_fade_over_level5_fade(fade):
     kwargs = {} if fade is None else {"level5_fade": fade}
     stage = FlowStage(chain, weights=_preset("released_code"), steps=300, lr=1e-3, net="flow1", sig_start=1.0,
                       **kwargs)
-    ds = SyntheticDataset("synthetic_sun3d", "train", length=2, size=(64, 64), supersample=1, cache_dir=False)
-    batch = default_collate([{k: v for k, v in ds[i].items() if k != "id"} for i in range(2)])
-    gt = losses.ground_truth(batch)
-    level5 = {}
-    for step in (0, 50, 99, 100, 150, 299):
-        with mock.patch.object(FlowStage, "global_step", new_callable=mock.PropertyMock, return_value=step):
-            _, terms = stage.stage_loss(batch, gt)
-        level5[step] = float(terms.get("flow5", 0.0))
+    batch = _stage_batch()
+    terms = _terms_at(stage, batch, losses.ground_truth(batch), (0, 50, 99, 100, 150, 299))
+    level5 = {step: t.get("flow5", 0.0) for step, t in terms.items()}
     duration = 300 * (1 / 3 if fade is None else fade)
     expected = {s: losses.ease_in_quad_down(s, duration) for s in level5}
     unit = level5[0]  # the full-weight term
@@ -298,9 +299,6 @@ def test_depth_motion_stage_is_fed_ground_truth_flow_for_gt_flow_warmup(warmup):
     the frozen flow net's output after it; 0 (DeMoN): the flow net's throughout."""
     from unittest import mock
 
-    from torch.utils.data import default_collate
-
-    from demon_lab.data.datasets import SyntheticDataset
     from demon_lab.nets.chain import ground_truth_inputs
     from demon_lab.stages import modules
     from demon_lab.stages.modules import DepthMotionStage
@@ -309,23 +307,23 @@ def test_depth_motion_stage_is_fed_ground_truth_flow_for_gt_flow_warmup(warmup):
     chain = DeMoN("v1", width=0.0625, size=(64, 64))
     stage = DepthMotionStage(chain, weights=_preset("released_code"), steps=300, lr=1e-3, net="dm1",
                              gt_flow_warmup=warmup)
-    ds = SyntheticDataset("synthetic_sun3d", "train", length=2, size=(64, 64), supersample=1, cache_dir=False)
-    batch = default_collate([{k: v for k, v in ds[i].items() if k != "id"} for i in range(2)])
+    batch = _stage_batch()
     pair = torch.cat([batch["image1"], batch["image2"]], 1)
     truth = ground_truth_inputs(batch, batch["intrinsics"]).flow
     with torch.no_grad():
         predicted = chain.flow1(pair)[1][:, :2]
-    fed = {}
+    fed = []
     real = modules.depth_motion_net_inputs
-    for step in (0, 149, 150, 299):
-        def spy(image2_2, flow, conf, *args, _step=step):
-            fed[_step] = (flow.clone(), conf.clone())
-            return real(image2_2, flow, conf, *args)
 
-        with mock.patch.object(DepthMotionStage, "global_step", new_callable=mock.PropertyMock, return_value=step), \
-                mock.patch.object(modules, "depth_motion_net_inputs", spy):
-            stage.stage_loss(batch, losses.ground_truth(batch))
-    for step, (flow, conf) in fed.items():
+    def spy(image2_2, flow, conf, *args):
+        fed.append((flow.clone(), conf.clone()))
+        return real(image2_2, flow, conf, *args)
+
+    steps = (0, 149, 150, 299)
+    with mock.patch.object(modules, "depth_motion_net_inputs", spy):
+        _terms_at(stage, batch, losses.ground_truth(batch), steps)
+    assert len(fed) == len(steps)
+    for step, (flow, conf) in zip(steps, fed, strict=True):
         if step < warmup * 300:
             assert torch.equal(flow.nan_to_num(7.0), truth.nan_to_num(7.0)), step
             assert torch.equal(conf, torch.isfinite(truth).float()), step
@@ -338,25 +336,16 @@ def test_depth_motion_stage_is_fed_ground_truth_flow_for_gt_flow_warmup(warmup):
 def test_iterative_stage_flow_sig_terms_start_at_sig_start(sig_start):
     """DeMoN's iterative stage starts at full weights (sig_start 0); with sig_start the flow sig
     terms are 0 before that fraction of the stage and at full weight after; depth-sig unaffected."""
-    from unittest import mock
-
-    from torch.utils.data import default_collate
-
-    from demon_lab.data.datasets import SyntheticDataset
     from demon_lab.stages.modules import IterativeStage
 
     torch.manual_seed(0)
     chain = DeMoN("v1", width=0.0625, size=(64, 64))
     stage = IterativeStage(chain, weights=_preset("released_code"), steps=300, lr=1e-3, queue_size=0,
                            sig_start=sig_start)
-    ds = SyntheticDataset("synthetic_sun3d", "train", length=2, size=(64, 64), supersample=1, cache_dir=False)
-    batch = default_collate([{k: v for k, v in ds[i].items() if k != "id"} for i in range(2)])
-    for step in (0, 149, 151, 299):
-        with mock.patch.object(IterativeStage, "global_step", new_callable=mock.PropertyMock, return_value=step):
-            _, terms = stage.stage_loss(batch, None)
+    for step, terms in _terms_at(stage, _stage_batch(), None, (0, 149, 151, 299)).items():
         on = step >= sig_start * 300
-        assert (float(terms["flow2_sig"]) > 0) == on and (float(terms["conf2_sig"]) > 0) == on
-        assert float(terms["depth2_sig"]) > 0
+        assert (terms["flow2_sig"] > 0) == on and (terms["conf2_sig"] > 0) == on
+        assert terms["depth2_sig"] > 0
 
 
 def test_flow_sig_gradient_swamps_the_flow_term_near_zero_flow():
