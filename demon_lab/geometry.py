@@ -568,13 +568,28 @@ def median_downsample(x: Tensor) -> Tensor:
     """
     if not isinstance(x, torch.Tensor) or x.dim() != 4:
         raise ValueError(f"x: expected shape (B, C, H, W), got {tuple(getattr(x, 'shape', ()))}")
+    h, w = (x.shape[2] + 1) // 2, (x.shape[3] + 1) // 2
     padded = F.pad(x, (1, 1, 1, 1), mode="replicate")
-    windows = padded.unfold(2, 3, 2).unfold(3, 3, 2).flatten(-2)  # (B, C, h, w, 9), row-major
-    ordered = windows.sort(dim=-1).values  # NaN sorts last
-    rank = (~torch.isnan(windows[..., :4])).sum(-1, keepdim=True)
-    median = ordered.gather(-1, rank).squeeze(-1)
-    centre = windows[..., 4]
-    return torch.where(torch.isnan(centre), centre, median)
+    window = [padded[:, :, dy:dy + 2 * h:2, dx:dx + 2 * w:2] for dy in range(3) for dx in range(3)]
+    nan = [torch.isnan(v) for v in window]
+    rank = sum((~n).to(torch.uint8) for n in nan[:4])
+    # NaN as +inf sorts last, as torch.sort puts NaN; with the centre valid the window has at least
+    # rank + 1 valid values, so the rank-th smallest is a valid one (the same even with real infs).
+    v = [torch.where(n, torch.inf, t) for n, t in zip(nan, window)]
+    for i, j in MEDIAN9_NETWORK:
+        v[i], v[j] = torch.minimum(v[i], v[j]), torch.maximum(v[i], v[j])
+    median = v[4]
+    for k in range(4):
+        median = torch.where(rank == k, v[k], median)
+    return torch.where(nan[4], window[4], median)
+
+
+MEDIAN9_NETWORK = ((0, 1), (3, 4), (6, 7), (1, 2), (4, 5), (7, 8), (0, 1), (3, 4), (6, 7), (0, 3), (3, 6), (0, 3),
+                   (1, 4), (4, 7), (1, 4), (2, 5), (5, 8), (2, 5), (1, 3), (5, 7), (2, 6), (4, 6), (2, 4), (2, 3),
+                   (5, 6))
+"""A 25-comparator sorting network for 9 values (it sorts all 512 inputs of 0s and 1s, hence every
+input: tests/test_geometry.py): the 3x3 windows sorted by 50 element-wise min/max ops, ~3x faster
+than ``Tensor.sort`` over a window dimension on the cpu scale's batches."""
 
 
 def inverse_depth_pyramid(inv_depth: Tensor, levels: int = 5) -> list[Tensor]:

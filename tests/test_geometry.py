@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import math
 
 import cv2
@@ -386,13 +387,24 @@ def _median_kernel_reference(x: np.ndarray) -> np.ndarray:
     return out
 
 
-@pytest.mark.parametrize("shape", [(9, 13), (8, 12), (5, 4)])
-def test_median_downsample_matches_the_kernel_including_nan(shape):
+@pytest.mark.parametrize("shape,nan", [((9, 13), 0.3), ((8, 12), 0.3), ((5, 4), 0.3), ((16, 16), 0.0),
+                                       ((16, 16), 0.7), ((1, 1), 0.0), ((2, 3), 0.0)])
+def test_median_downsample_matches_the_kernel_including_nan(shape, nan):
     rng = np.random.default_rng(9)
     x = rng.random(shape)
-    x[rng.random(shape) < 0.3] = np.nan
+    x[rng.random(shape) < nan] = np.nan
+    x[rng.random(shape) < 0.05] = np.inf
     ours = geo.median_downsample(torch.from_numpy(x)[None, None])[0, 0].numpy()
     np.testing.assert_array_equal(ours, _median_kernel_reference(x))
+
+
+def test_the_median_network_sorts_every_input():
+    # 0-1 principle: a comparator network that sorts every sequence of 0s and 1s sorts every input.
+    bits = torch.tensor(list(itertools.product([0.0, 1.0], repeat=9)))
+    v = list(bits.T)
+    for i, j in geo.MEDIAN9_NETWORK:
+        v[i], v[j] = torch.minimum(v[i], v[j]), torch.maximum(v[i], v[j])
+    assert torch.equal(torch.stack(v, 1), bits.sort(dim=1).values)
 
 
 def test_median_downsample_without_nan_is_the_median():

@@ -272,6 +272,34 @@ def test_flow_stage_sig_terms_start_at_sig_start(sig_start):
     assert (sig[149] == 0) == (sig_start == 0.5) and sig[151] > 0
 
 
+def test_a_sig_term_of_weight_zero_is_skipped_bit_for_bit(monkeypatch):
+    """At ramp 0 the sig images are not computed; the loss and every gradient are those of the
+    full product weight x sig, to the last bit."""
+    torch.manual_seed(0)
+    batch = _stage_batch()
+    gt = losses.ground_truth(batch)
+    pred5 = torch.randn(2, 4, *gt["flow5"].shape[-2:], requires_grad=True)
+    pred2 = torch.randn(2, 4, *gt["flow2"].shape[-2:], requires_grad=True)
+    weights = _preset("released_code")
+
+    def loss_and_grads(fn):
+        pred5.grad = pred2.grad = None
+        total, terms = fn()
+        total.backward()
+        return total.detach(), {k: v.detach() for k, v in terms.items()}, pred5.grad.clone(), pred2.grad.clone()
+
+    sig = losses.sig_loss
+    monkeypatch.setattr(losses, "sig_loss", lambda *a: (_ for _ in ()).throw(AssertionError("sig computed")))
+    skipped = loss_and_grads(lambda: losses.flow_loss(pred5, pred2, gt, weights, ramp=0.0))
+    assert skipped[1]["flow2_sig"] == 0 and skipped[1]["conf2_sig"] == 0
+    # the product, written out: the terms of flow_loss with weight x ramp x sig at ramp 0
+    monkeypatch.setattr(losses, "sig_loss", sig)
+    monkeypatch.setattr(losses, "_sig_term", lambda w, p, g, *eps: w * sig(p, g, *eps))
+    product = loss_and_grads(lambda: losses.flow_loss(pred5, pred2, gt, weights, ramp=0.0))
+    assert torch.equal(skipped[0], product[0]) and torch.equal(skipped[2], product[2])
+    assert torch.equal(skipped[3], product[3]) and product[1]["flow2_sig"] == 0
+
+
 @pytest.mark.parametrize("fade", [None, 1.0, 3.0])
 def test_flow_stage_level5_terms_fade_over_level5_fade(fade):
     """DeMoN fades the level-5 terms out over the first third of a flow stage; ``level5_fade`` sets
