@@ -7,7 +7,8 @@ run (a geometry op against its OpenCV counterpart). Sections:
 * ``geometry``: the geometry layers at 256x192, batch 8, float32, on the CPU.
 * ``data``: synthetic pairs per second, rendered (one core, worker processes) and from the cache.
 * ``train``: training steps/s per stage at the cpu scale, FLOP/s against matmul, channels-last and
-  torch.compile, inference pairs/s of the full chain.
+  torch.compile, inference pairs/s of the full chain, and the job's own loop (``python -m
+  demon_lab`` training flow1 and dm1) against the bare step.
 """
 
 from __future__ import annotations
@@ -19,7 +20,7 @@ import platform
 import re
 import statistics
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -289,7 +290,7 @@ def bench_train(repeats: int) -> str:
         except Exception as e:
             rows.append(("flow1", label, f"failed: {type(e).__name__}", "", ""))
     logging_share = _logging_share(kinds[0][1], batch, size, width)
-    job = _job_rates(("flow1", "dm1"))
+    job = job_rates(JOB_COMMAND, ("flow1", "dm1"))
     bare = {r[0]: float(r[2]) for r in rows if r[1] == "default"}
     chain = DeMoN("v1", 1.0, (192, 256)).eval()
     images = torch.rand(1, 3, 192, 256) - 0.5
@@ -332,9 +333,10 @@ JOB_COMMAND = ("python", "-m", "demon_lab", "schedule.until=dm1", "iterations=0"
                f"scale.steps.dm1={JOB_STEPS}")
 
 
-def _job_rates(stages: tuple[str, ...]) -> dict[str, float]:
-    """Steps/s of the first stages trained by the job itself (``JOB_COMMAND`` in a subprocess, into
-    a temporary stage cache and MLflow store), as its stage runs log them."""
+def job_rates(command: Sequence[str], stages: Sequence[str]) -> dict[str, float]:
+    """Steps/s of ``stages`` as the job trains them: ``command`` (``python -m demon_lab ...``) in a
+    subprocess with a temporary stage cache and MLflow store, each stage's
+    ``stage/<name>/steps_per_second`` read from the job's run."""
     import subprocess
     import sys
     import tempfile
@@ -343,7 +345,7 @@ def _job_rates(stages: tuple[str, ...]) -> dict[str, float]:
 
     with tempfile.TemporaryDirectory() as tmp:
         uri = f"sqlite:///{tmp}/mlflow.db"
-        cmd = [sys.executable, *JOB_COMMAND[1:], f"cache_dir={tmp}/cache", f"tracking.uri={uri}",
+        cmd = [sys.executable, *command[1:], f"cache_dir={tmp}/cache", f"tracking.uri={uri}",
                f"tracking.artifact_dir={tmp}/artifacts", f"hydra.run.dir={tmp}/out"]
         subprocess.run(cmd, check=True, cwd=tmp, stdout=subprocess.DEVNULL)
         client = mlflow.MlflowClient(tracking_uri=uri)

@@ -19,8 +19,10 @@ over the visible pixels, in grey levels of 255 (how well brightness constancy ho
 flow to the images). ``near_camera2_fraction``: the share of pairs with a valid view-1 point at
 camera-2 depth z2 < 0.1 z1 (near or behind camera 2's image plane), where the ground-truth flow
 (DeMoN's ``depth_to_flow``, no check of z2) grows without bound and one pair can dominate a training
-batch's flow loss. Samples are read at the source's native resolution (synthetic ones at the
-configured ``data.size``), without augmentation.
+batch's flow loss. ``constant_depth_sc_inv``: the mean over pairs of the population standard
+deviation of the log ground-truth depth over the valid pixels, the sc-inv of any constant depth
+(what a depth prediction must beat to show structure). Samples are read at the source's native
+resolution (synthetic ones at the configured ``data.size``), without augmentation.
 
     python -m demon_lab.data_stats data=synthetic_sun3d n=500 out=stats.json
     python -m demon_lab.data_stats data=pair_folder data.path=/data/sun3d_pairs
@@ -43,8 +45,8 @@ from demon_lab.resources import CONF
 from demon_lab.tables import text_table
 
 KEYS = ("n_pairs", "rot_mean_deg", "rot_std_deg", "tri_mean_deg", "tri_std_deg",
-        "valid_fraction", "visible_fraction", "median_depth", "zero_flow_epe", "tran_x_negative_fraction",
-        "photometric_error", "near_camera2_fraction")
+        "valid_fraction", "visible_fraction", "median_depth", "zero_flow_epe", "constant_depth_sc_inv",
+        "tran_x_negative_fraction", "photometric_error", "near_camera2_fraction")
 
 
 def pair_statistics(sample: dict) -> dict[str, float]:
@@ -72,6 +74,7 @@ def pair_statistics(sample: dict) -> dict[str, float]:
         "visible_fraction": float(sample["visible"].numpy().mean()),
         "median_depth": float(np.median(1.0 / inv.numpy()[valid[None]])),
         "zero_flow_epe": flow_epe(np.zeros_like(sample["flow"].numpy()), sample["flow"].numpy()),
+        "constant_depth_sc_inv": float(np.log(inv.numpy()[valid[None]]).std()),
         "tran_x_negative": float(sample["motion"][3] < 0),
         "photometric_error": photometric,
         "near_camera2": float(near),
@@ -103,6 +106,7 @@ def dataset_statistics(datasets: list, n: int) -> dict[str, Any]:
         "visible_fraction": float(np.mean([r["visible_fraction"] for r in rows])),
         "median_depth": float(np.median([r["median_depth"] for r in rows])),
         "zero_flow_epe": float(np.nanmean([r["zero_flow_epe"] for r in rows])),
+        "constant_depth_sc_inv": float(np.mean([r["constant_depth_sc_inv"] for r in rows])),
         "tran_x_negative_fraction": float(np.mean([r["tran_x_negative"] for r in rows])),
         "photometric_error": float(np.nanmean([r["photometric_error"] for r in rows])),
         "near_camera2_fraction": float(np.mean([r["near_camera2"] for r in rows])),

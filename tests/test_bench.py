@@ -26,3 +26,10 @@ def test_geometry_benchmark_reports_every_op_with_numbers(tmp_path):
         assert row and float(row.group(1)) > 0 and float(row.group(2)) > 0, op
     assert re.search(r"\| warp_image .*\| [0-9.]+x cv2\.remap", text)
     assert re.search(r"angle_axis_to_matrix \(B=8\) .*x cv2\.Rodrigues", text)
+
+
+def test_job_rates_reads_each_stage_rate_from_the_job_it_runs():
+    command = ("python", "-m", "demon_lab", "scale=smoke", "schedule.until=dm1", "iterations=0",
+               "scale.steps.flow1=12", "scale.steps.dm1=6")
+    rates = bench.job_rates(command, ("flow1", "dm1"))
+    assert set(rates) == {"flow1", "dm1"} and all(r > 0 for r in rates.values())

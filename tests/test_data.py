@@ -25,6 +25,7 @@ from demon_lab.data.datasets import (
     PairFolderDataset,
     SyntheticDataset,
     TumDataset,
+    flow_order,
 )
 from demon_lab.data.readers import (
     middlebury_motorcycle,
@@ -555,6 +556,42 @@ def test_mixture_sampler_shards_every_batch_across_data_parallel_processes(skip)
         MixtureSampler(*args, rank=3, world=3, batch=4)
 
 
+def test_an_easy_first_curriculum_widens_from_the_easiest_samples_to_all():
+    """easy_first=(0.2, 0.5): key n draws among the first ceil(q(n) x length) of the source's order,
+    q rising from 0.2 at the first key to 1 at half the keys; shards and a resumed stage see the keys
+    of one uninterrupted process; start 1 is the plain sampler."""
+    order = [list(range(9, -1, -1)), list(range(19, -1, -1))]  # easiest: the highest indices
+    args = ([10, 20], [1.0, 1.0], 400, 3)
+    keys = list(MixtureSampler(*args, easy_first=(0.2, 0.5), order=order))
+    for n, (s, i, _) in enumerate(keys):
+        share = min(1.0, 0.2 + 0.8 * n / 200)
+        assert order[s].index(i) < math.ceil(share * (10, 20)[s]), (n, s, i)
+    first = [(s, i) for s, i, _ in keys[:20]]  # q < 0.28: 3 of 10, 6 of 20
+    assert {i for s, i in first if s == 0} <= {9, 8, 7} and {i for s, i in first if s == 1} <= set(range(14, 20))
+    assert {i for s, i, _ in keys[200:] if s == 1} == set(range(20))  # the whole source after until
+    resumed = list(MixtureSampler(*args, skip=120, easy_first=(0.2, 0.5), order=order))
+    assert resumed == keys[120:]
+    shards = [list(MixtureSampler(*args, rank=r, world=2, batch=4, easy_first=(0.2, 0.5), order=order))
+              for r in range(2)]
+    assert [k for b in range(50) for shard in shards for k in shard[4 * b:4 * b + 4]] == keys
+    plain = list(MixtureSampler(*args))
+    assert keys[200:] == plain[200:] and keys[:200] != plain[:200]
+    assert list(MixtureSampler(*args, easy_first=(1.0, 0.5), order=order)) == plain
+    with pytest.raises(ValueError, match="easy_first: expected an order"):
+        MixtureSampler(*args, easy_first=(0.2, 0.5))
+
+
+def test_flow_order_ranks_samples_by_their_mean_flow():
+    dataset = SyntheticDataset("synthetic_sun3d", length=4, size=(32, 32), cache_dir=False)
+    means = [float(torch.linalg.vector_norm(dataset.load(i)["flow"].double(), dim=0).nanmean()) for i in range(4)]
+    assert list(flow_order(dataset)) == sorted(range(4), key=means.__getitem__)
+    assert list(flow_order(dataset)) == [1, 3, 2, 0]  # not the identity: the order is the flows'
+    pairs = MiddleburyDataset()
+    pairs.load = lambda i: {"image1": torch.zeros(3, 4, 4)}  # no flow: not orderable
+    with pytest.raises(smp.DataError, match="easy_first: middlebury has no ground-truth flow"):
+        flow_order(pairs)
+
+
 def test_datamodule_batches_a_mix(tmp_path):
     from demon_lab.data.datamodule import DemonDataModule
 
@@ -604,8 +641,8 @@ def test_data_stats_command_writes_json(tmp_path):
     assert result.returncode == 0, result.stderr
     stats = json.loads(out.read_text())
     for key in ("n_pairs", "rot_mean_deg", "rot_std_deg", "tri_mean_deg", "tri_std_deg",
-                "valid_fraction", "visible_fraction", "median_depth", "zero_flow_epe", "tran_x_negative_fraction",
-                "photometric_error", "near_camera2_fraction"):
+                "valid_fraction", "visible_fraction", "median_depth", "zero_flow_epe", "constant_depth_sc_inv",
+                "tran_x_negative_fraction", "photometric_error", "near_camera2_fraction"):
         assert key in stats
     assert stats["n_pairs"] == 6 and stats["outdoor"] == "yes" and stats["perfect_gt"] == "yes"
     assert "Rot. avg" in result.stdout and "synthetic_mvs" in result.stdout
@@ -622,6 +659,18 @@ def test_zero_flow_epe_is_the_mean_ground_truth_flow_length(rendered):
     assert stats["zero_flow_epe"] == pytest.approx(float(length[keep].mean()), rel=1e-9)
     assert stats["tran_x_negative"] == float(rendered["motion"][3] < 0)
     assert stats["photometric_error"] == pytest.approx(_photometric_error(rendered)[0] * 255, rel=1e-6)
+
+
+def test_constant_depth_sc_inv_is_the_sc_inv_of_a_constant_prediction(rendered):
+    from demon_lab import metrics
+    from demon_lab.data_stats import pair_statistics
+
+    sample = rendered[0]
+    gt = {"inv_depth": sample["inv_depth"][0].numpy(), "motion": sample["motion"].numpy(),
+          "intrinsics": sample["intrinsics"].numpy()}
+    for constant in (0.3, 2.0):
+        scored = metrics.evaluate_sample({"inv_depth": np.full_like(gt["inv_depth"], constant)}, gt, depthmask=False)
+        assert pair_statistics(sample)["constant_depth_sc_inv"] == pytest.approx(scored["sc_inv"], rel=1e-6)
 
 
 @pytest.mark.parametrize("t_z, near", [(-0.5, 0.0), (-0.95, 1.0), (-1.5, 1.0)])

@@ -212,6 +212,8 @@ def test_a_job_that_raises_leaves_its_run_failed(tmp_path):
     (["+schedule.stages.dm1.gt_flow_warmup=1.5"],
      "schedule.stages.dm1.gt_flow_warmup: expected a fraction of the stage in [0, 1]"),
     (["+schedule.stages.flow1.gt_flow_warmup=0.5"], "schedule.stages.flow1.gt_flow_warmup: only depth-motion"),
+    (["+schedule.stages.flow1.easy_first=[0,0.5]"], "schedule.stages.flow1.easy_first: expected [start, until]"),
+    (["+schedule.stages.flow1.easy_first=0.5"], "schedule.stages.flow1.easy_first: expected [start, until]"),
     (["baseline.size=[16,16]"], "baseline.size: expected native or [H, W] with sides >= 32 pixels"),
     (["baseline.size=full"], "baseline.size: expected native or [H, W] with sides >= 32 pixels, got full"),
     (["data.real_pair=/does/not/exist"], "data.test[3].path (data.real_pair): /does/not/exist: no such file"),
@@ -277,7 +279,7 @@ def test_longer_oracle_study_trains_dm1_four_times_the_profile_and_shares_flow1(
 
 @pytest.mark.parametrize("scale", ["smoke", "cpu", "paper"])
 def test_the_probe_options_are_absent_from_every_profile_and_key_only_their_stage_and_later(scale):
-    """level5_fade and gt_flow_warmup exist for probes (studies/cpu_recipe.yaml): no profile sets them,
+    """level5_fade, gt_flow_warmup and easy_first exist for probes (studies/cpu_recipe.yaml): no profile sets them,
     so no key holds them; set, they key their own stage and, through the upstream keys, the later ones."""
     from demon_lab.stages.schedule import stage_dirs
 
@@ -285,10 +287,13 @@ def test_the_probe_options_are_absent_from_every_profile_and_key_only_their_stag
         plain = compose("config", [f"scale={scale}"])
         fade = compose("config", [f"scale={scale}", "+schedule.stages.flow1.level5_fade=1.0"])
         warm = compose("config", [f"scale={scale}", "+schedule.stages.dm1.gt_flow_warmup=0.5"])
+        easy = compose("config", [f"scale={scale}", "+schedule.stages.flow1.easy_first=[0.25,0.5]"])
     for spec in plain.schedule.stages.values():
-        assert "level5_fade" not in spec and "gt_flow_warmup" not in spec
-    keys = {name: [d.key for d in stage_dirs(cfg)] for name, cfg in (("plain", plain), ("fade", fade), ("warm", warm))}
+        assert "level5_fade" not in spec and "gt_flow_warmup" not in spec and "easy_first" not in spec
+    keys = {name: [d.key for d in stage_dirs(cfg)]
+            for name, cfg in (("plain", plain), ("fade", fade), ("warm", warm), ("easy", easy))}
     assert all(a != b for a, b in zip(keys["plain"], keys["fade"], strict=True))
+    assert all(a != b for a, b in zip(keys["plain"], keys["easy"], strict=True))
     assert keys["warm"][0] == keys["plain"][0] and all(a != b for a, b in zip(keys["plain"][1:], keys["warm"][1:],
                                                                              strict=True))
 
@@ -324,6 +329,36 @@ def test_train_stage_hands_the_probe_options_to_their_stages(tmp_path, monkeypat
                 training.train_stage(config, chain, stage, logger=None, progress=False)
         assert {k: v for k, v in given["flow"].items() if k == "level5_fade"} == expect["flow"]
         assert {k: v for k, v in given["depth_motion"].items() if k == "gt_flow_warmup"} == expect["depth_motion"]
+
+
+def test_train_stage_draws_its_samples_with_the_stage_curriculum(tmp_path, monkeypatch):
+    """easy_first of a stage reaches its sampler, with each source ordered by flow_order; a stage
+    without it draws with the plain sampler."""
+    from demon_lab.data.datasets import flow_order
+    from demon_lab.stages import training
+    from demon_lab.stages.schedule import build_chain, stage_dirs
+
+    class Built(Exception):
+        pass
+
+    samplers = []
+
+    def fit(trainer, module, train_dataloaders, ckpt_path=None):
+        samplers.append(train_dataloaders.sampler)
+        raise Built
+
+    monkeypatch.setattr(training.L.Trainer, "fit", fit)
+    with initialize_config_dir(CONF, version_base="1.3"):
+        cfg = compose("config", ["scale=smoke", f"cache_dir={tmp_path}",
+                                 "+schedule.stages.flow1.easy_first=[0.25,0.5]"])
+    chain = build_chain(cfg)
+    for stage in stage_dirs(cfg)[:2]:  # flow1 with the curriculum, dm1 without
+        with pytest.raises(Built):
+            training.train_stage(cfg, chain, stage, logger=None, progress=False)
+    easy, plain = samplers
+    assert easy.easy_first == (0.25, 0.5) and plain.easy_first is None
+    datasets = training.build_datamodule(cfg, 2, 4).train_sources
+    assert [list(o) for o in easy.order] == [list(flow_order(d)) for _, d in datasets]
 
 
 def test_a_stage_key_holds_only_the_loss_weights_that_stage_reads():

@@ -16,7 +16,7 @@ import numpy as np
 import torch
 from torch.utils.data import DataLoader
 
-from demon_lab.data.datasets import MixtureDataset, MixtureSampler, PairDataset
+from demon_lab.data.datasets import MixtureDataset, MixtureSampler, PairDataset, flow_order
 
 
 def _seed_worker(worker_id: int) -> None:
@@ -37,6 +37,7 @@ class DemonDataModule(L.LightningDataModule):
         seed: int = 0,
         rank: int = 0,
         world: int = 1,
+        easy_first: Sequence[float] | None = None,
     ):
         super().__init__()
         self.train_sources = [(float(e["weight"]), e["dataset"]) for e in train]
@@ -44,6 +45,7 @@ class DemonDataModule(L.LightningDataModule):
         self.batch_size, self.num_workers = int(batch_size), int(num_workers)
         self.samples_per_epoch, self.seed, self.skip = int(samples_per_epoch), int(seed), int(skip)
         self.rank, self.world = int(rank), int(world)  # data-parallel: this process's share of each batch
+        self.easy_first = None if easy_first is None else tuple(easy_first)  # curriculum: MixtureSampler
         self._sampler: MixtureSampler | None = None
 
     def _loader(self, dataset, **kwargs) -> DataLoader:
@@ -55,9 +57,10 @@ class DemonDataModule(L.LightningDataModule):
         if not self.train_sources:
             raise ValueError("data.train: no training source configured")
         weights, datasets = zip(*self.train_sources)
+        order = None if self.easy_first is None else [flow_order(d) for d in datasets]
         self._sampler = MixtureSampler([len(d) for d in datasets], weights,
                                        self.samples_per_epoch, self.seed, self.skip, self.rank, self.world,
-                                       self.batch_size)
+                                       self.batch_size, self.easy_first, order)
         return self._loader(MixtureDataset(datasets), sampler=self._sampler, drop_last=True)
 
     def val_dataloader(self) -> list[DataLoader]:

@@ -329,6 +329,21 @@ class TumDataset(PairDataset):
 # ----------------------------------------------------------------------------- mixtures
 
 
+def flow_order(dataset: PairDataset) -> np.ndarray:
+    """The dataset's indices from the smallest to the largest mean ground-truth flow magnitude
+    (un-augmented samples; pixels without flow left out, a sample without any last): the order of
+    an ``easy_first`` curriculum (:class:`MixtureSampler`)."""
+    magnitudes = []
+    for i in range(len(dataset)):
+        flow = dataset.load(i).get("flow")
+        if flow is None:
+            raise smp.DataError(f"easy_first: {dataset.name} has no ground-truth flow to order its samples by")
+        norm = torch.linalg.vector_norm(flow.double(), dim=0)
+        norm = norm[torch.isfinite(norm)]
+        magnitudes.append(float(norm.mean()) if norm.numel() else math.inf)
+    return np.argsort(np.asarray(magnitudes), kind="stable")
+
+
 class MixtureDataset(torch.utils.data.Dataset):
     """Several datasets behind one index space of ``(dataset, index, draw_seed)`` keys."""
 
@@ -354,10 +369,16 @@ class MixtureSampler(torch.utils.data.Sampler):
     Data-parallel training (``world`` processes, ``batch`` samples each per step): every process
     draws the same global sequence and keeps its slice of each global batch of ``batch x world``
     keys, so the processes together see exactly the batches of a single-process run (and ``skip``
-    still counts keys of the global sequence)."""
+    still counts keys of the global sequence).
+
+    ``easy_first = (start, until)`` is a curriculum: key ``n`` of the sequence draws its sample among
+    the first ``q(n)`` of each source's ``order`` (easiest first, :func:`flow_order`), ``q`` rising
+    linearly from ``start`` at the first key to 1 at ``until x num_samples`` keys (a training stage
+    is one epoch: fractions of the stage); from there on the keys are the plain sampler's."""
 
     def __init__(self, lengths: Sequence[int], weights: Sequence[float], num_samples: int, seed: int = 0,
-                 skip: int = 0, rank: int = 0, world: int = 1, batch: int = 1):
+                 skip: int = 0, rank: int = 0, world: int = 1, batch: int = 1,
+                 easy_first: Sequence[float] | None = None, order: Sequence[Sequence[int]] | None = None):
         if len(lengths) != len(weights) or not lengths:
             raise ValueError("weights: expected one weight per source")
         w = np.asarray(weights, dtype=np.float64)
@@ -369,6 +390,18 @@ class MixtureSampler(torch.utils.data.Sampler):
         self.rank, self.world, self.batch = int(rank), int(world), int(batch)
         if not 0 <= self.rank < self.world:
             raise ValueError(f"rank {rank} of a world of {world}")
+        self.easy_first = None if easy_first is None else (float(easy_first[0]), float(easy_first[1]))
+        if self.easy_first is not None and (order is None or [len(o) for o in order] != self.lengths):
+            raise ValueError("easy_first: expected an order of every source's samples")
+        self.order = None if order is None else [np.asarray(o, dtype=np.int64) for o in order]
+
+    def _share(self, key: int) -> float:
+        """The easiest fraction of each source that key ``key`` of the sequence draws from."""
+        if self.easy_first is None:
+            return 1.0
+        start, until = self.easy_first
+        ramp = key / (until * self.num_samples) if until > 0 else 1.0
+        return min(1.0, start + (1.0 - start) * ramp)
 
     def set_epoch(self, epoch: int) -> None:
         self.epoch = int(epoch)
@@ -386,6 +419,10 @@ class MixtureSampler(torch.utils.data.Sampler):
         sources = rng.choice(len(self.lengths), size=self.num_samples, p=self.p)
         step = self.batch * self.world
         for n, s in enumerate(sources):
-            index = int(rng.integers(self.lengths[s]))
+            share = self._share(epoch * self.num_samples + n)
+            if share >= 1:  # every sample: the keys of the plain sampler
+                index = int(rng.integers(self.lengths[s]))
+            else:
+                index = int(self.order[s][rng.integers(max(1, math.ceil(share * self.lengths[s])))])
             if n >= skip and (n % step) // self.batch == self.rank:
                 yield (int(s), index, epoch * self.num_samples + n)

@@ -56,16 +56,17 @@ def processes_launched_outside() -> bool:
     return any(os.environ.get(var, "").isdigit() for var in ("RANK", "SLURM_PROCID", "LOCAL_RANK"))
 
 
-def build_datamodule(cfg: DictConfig, batch_size: int, samples: int, skip: int = 0):
+def build_datamodule(cfg: DictConfig, batch_size: int, samples: int, skip: int = 0, easy_first=None):
     """Training data for ``samples`` draws in batches of ``batch_size`` (global: under DDP each
-    process loads its share of every batch)."""
+    process loads its share of every batch); ``easy_first``: a stage's curriculum (MixtureSampler)."""
     from demon_lab.config import instantiate
     from demon_lab.data.datamodule import DemonDataModule
 
     train = [{"weight": e.weight, "dataset": instantiate(e.dataset)} for e in cfg.data.train]
     world = world_size(cfg)
     return DemonDataModule(train=train, batch_size=batch_size // world, num_workers=cfg.data.num_workers,
-                           samples_per_epoch=samples, seed=cfg.seed, skip=skip, rank=global_rank(cfg), world=world)
+                           samples_per_epoch=samples, seed=cfg.seed, skip=skip, rank=global_rank(cfg), world=world,
+                           easy_first=None if easy_first is None else [float(v) for v in easy_first])
 
 
 def train_stage(cfg: DictConfig, chain: DeMoN, stage: StageDir, logger: L.pytorch.loggers.Logger | None,
@@ -101,7 +102,8 @@ def train_stage(cfg: DictConfig, chain: DeMoN, stage: StageDir, logger: L.pytorc
     # same result as an uninterrupted run (on the CPU).
     # With DDP the global batch is the configured one, each process taking its slice of every batch
     # (demon_lab's sampler deals them, not Lightning's, which would reshuffle the sequence).
-    datamodule = build_datamodule(cfg, batch, int(spec.steps) * batch, skip=start_step * batch)
+    datamodule = build_datamodule(cfg, batch, int(spec.steps) * batch, skip=start_step * batch,
+                                  easy_first=spec.get("easy_first"))
     checkpoint = L.pytorch.callbacks.ModelCheckpoint(
         dirpath=stage.path, filename="step{step}", save_last=True, save_top_k=0,
         every_n_train_steps=max(1, int(cfg.scale.get("checkpoint_every", 50))), auto_insert_metric_name=False)
