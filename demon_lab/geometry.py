@@ -561,7 +561,7 @@ def median_downsample(x: Tensor) -> Tensor:
     left neighbour). Without NaNs this is the plain median.
 
     Args:
-        x: (B, C, H, W).
+        x: (B, C, H, W), floating point.
 
     Returns:
         (B, C, ceil(H/2), ceil(W/2)).

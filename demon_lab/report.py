@@ -458,7 +458,9 @@ def report(name: str, uri: str, out_dir: Path, directory: Path = STUDIES) -> dic
     out_dir.mkdir(parents=True, exist_ok=True)
     figures_dir = out_dir / "figures"
     figures_dir.mkdir(exist_ok=True)
-    for old in figures_dir.glob(f"{name}_*.png"):
+    from demon_lab.report_figures import study_figures
+
+    for old in study_figures(figures_dir, name):  # this study's figures, drawn again below
         old.unlink()
     figures: list[Path] = []
     import matplotlib

