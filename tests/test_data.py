@@ -591,6 +591,8 @@ def test_an_easy_first_curriculum_widens_from_the_easiest_samples_to_all():
     assert list(later) == list(plain_later)
     with pytest.raises(ValueError, match="easy_first: expected an order"):
         MixtureSampler(*args, easy_first=(0.2, 0.5))
+    with pytest.raises(ValueError, match=r"easy_first: expected \(start, until\) in \(0, 1\]"):
+        MixtureSampler(*args, easy_first=(0.2, 0.0), order=order)
 
 
 def test_flow_order_ranks_samples_by_their_mean_flow():

@@ -393,6 +393,8 @@ class MixtureSampler(torch.utils.data.Sampler):
         if not 0 <= self.rank < self.world:
             raise ValueError(f"rank {rank} of a world of {world}")
         self.easy_first = None if easy_first is None else (float(easy_first[0]), float(easy_first[1]))
+        if self.easy_first is not None and not all(0 < f <= 1 for f in self.easy_first):
+            raise ValueError(f"easy_first: expected (start, until) in (0, 1], got {self.easy_first}")
         if self.easy_first is not None and (order is None or [len(o) for o in order] != self.lengths):
             raise ValueError("easy_first: expected an order of every source's samples")
         self.order = None if order is None else [np.asarray(o, dtype=np.int64) for o in order]
@@ -402,8 +404,7 @@ class MixtureSampler(torch.utils.data.Sampler):
         if self.easy_first is None:
             return 1.0
         start, until = self.easy_first
-        ramp = key / (until * self.num_samples) if until > 0 else 1.0  # until 0: no curriculum
-        return min(1.0, start + (1.0 - start) * ramp)
+        return min(1.0, start + (1.0 - start) * key / (until * self.num_samples))
 
     def set_epoch(self, epoch: int) -> None:
         self.epoch = int(epoch)

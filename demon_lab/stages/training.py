@@ -66,7 +66,7 @@ def build_datamodule(cfg: DictConfig, batch_size: int, samples: int, skip: int =
     world = world_size(cfg)
     return DemonDataModule(train=train, batch_size=batch_size // world, num_workers=cfg.data.num_workers,
                            samples_per_epoch=samples, seed=cfg.seed, skip=skip, rank=global_rank(cfg), world=world,
-                           easy_first=None if easy_first is None else [float(v) for v in easy_first])
+                           easy_first=easy_first)
 
 
 def train_stage(cfg: DictConfig, chain: DeMoN, stage: StageDir, logger: L.pytorch.loggers.Logger | None,
