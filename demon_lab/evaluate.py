@@ -21,7 +21,7 @@ from typing import Any
 import torch
 from torch.utils.data import DataLoader
 
-from demon_lab import metrics
+from demon_lab import execution, metrics
 from demon_lab.nets.chain import DeMoN
 
 log = logging.getLogger(__name__)
@@ -30,12 +30,15 @@ log = logging.getLogger(__name__)
 @torch.no_grad()
 def evaluate_dataset(chain: DeMoN, dataset, iterations: int, oracle: str | None = None,
                      batch_size: int = 4, max_samples: int | None = None, keep: int = 0,
-                     refined: bool = True, histogram: metrics.PixelHistogram | None = None
+                     refined: bool = True, histogram: metrics.PixelHistogram | None = None,
+                     precision: Any = 32, channels_last: bool = False
                      ) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
     """Per-sample metric rows (one per sample and iteration, ``it`` = 0..N or 'refined') and the
     raw predictions of the first ``keep`` samples (for visualisations). ``refined=False`` (the
     refinement net was not trained) leaves out the refined rows. ``histogram`` collects the
-    per-pixel errors of the final depth (refined, else the last pass)."""
+    per-pixel errors of the final depth (refined, else the last pass). The chain runs on the device
+    of its parameters, its nets in ``precision`` (:mod:`demon_lab.execution`; the predictions it
+    returns, and so the metrics, are float32), the images channels-last if ``channels_last``."""
     n = len(dataset) if max_samples is None else min(len(dataset), int(max_samples))
     subset = torch.utils.data.Subset(dataset, range(n))
     protocol = metrics.protocol(dataset)
@@ -44,8 +47,10 @@ def evaluate_dataset(chain: DeMoN, dataset, iterations: int, oracle: str | None 
     kept: list[dict[str, Any]] = []
     for batch in DataLoader(subset, batch_size=batch_size, shuffle=False):
         b = {k: v.to(device) if isinstance(v, torch.Tensor) else v for k, v in batch.items()}
+        b = execution.channels_last_batch(b, channels_last)
         gt = {"inv_depth": b["inv_depth"], "motion": b["motion"]} if oracle else None
-        out = chain(b["image1"], b["image2"], b["intrinsics"], iterations=iterations, oracle=oracle, gt=gt)
+        with execution.autocast(device, precision):
+            out = chain(b["image1"], b["image2"], b["intrinsics"], iterations=iterations, oracle=oracle, gt=gt)
         for i in range(b["image1"].shape[0]):
             truth = metrics.ground_truth({k: v[i] for k, v in batch.items() if isinstance(v, torch.Tensor)}, dataset)
             for k, p in enumerate(out.passes):
@@ -106,6 +111,8 @@ def evaluate_test_sets(cfg, chain: DeMoN | None, refined: bool) -> list[TestSetR
     from demon_lab.config import instantiate
 
     keep = max(int(cfg.eval.visualize), int(cfg.eval.point_clouds))
+    if cfg.method == "demon" and chain is not None:  # on the device it trained on (Lightning hands it back on the CPU)
+        chain = chain.to(execution.evaluation_device(cfg))
     results = []
     for entry in cfg.data.test:
         dataset = instantiate(entry)
@@ -113,7 +120,9 @@ def evaluate_test_sets(cfg, chain: DeMoN | None, refined: bool) -> list[TestSetR
         histogram = metrics.PixelHistogram()
         if cfg.method == "demon":
             rows, kept = evaluate_dataset(chain, dataset, int(cfg.iterations), cfg.oracle, int(cfg.eval.batch_size),
-                                          cfg.eval.max_samples, keep=keep, refined=refined, histogram=histogram)
+                                          cfg.eval.max_samples, keep=keep, refined=refined, histogram=histogram,
+                                          precision=cfg.get("precision", 32),
+                                          channels_last=bool(cfg.model.get("channels_last", False)))
             summary = summarize(rows, int(cfg.iterations))
         else:
             rows, kept = _evaluate_baseline(cfg, entry, dataset, chain, keep, histogram)

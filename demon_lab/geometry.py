@@ -29,6 +29,8 @@ from collections.abc import Sequence
 import torch
 import torch.nn.functional as F
 
+from demon_lab.execution import float32
+
 DEMON_INTRINSICS = (0.89115971, 1.18821287, 0.5, 0.5)
 """DeMoN's fixed normalised intrinsics (SUN3D: f = 570.342 px at 640x480)."""
 
@@ -81,6 +83,7 @@ def _skew(r: Tensor) -> Tensor:
     ).view(-1, 3, 3)
 
 
+@float32
 def angle_axis_to_matrix(r: Tensor) -> Tensor:
     """Rotation matrices from angle-axis vectors (Rodrigues' formula).
 
@@ -110,6 +113,7 @@ def angle_axis_to_matrix(r: Tensor) -> Tensor:
     return eye + a[:, None, None] * k + b[:, None, None] * (k @ k)
 
 
+@float32
 def matrix_to_quaternion(R: Tensor) -> Tensor:
     """Unit quaternions ``(w, x, y, z)`` with ``w >= 0`` from rotation matrices (B, 3, 3).
 
@@ -140,6 +144,7 @@ def matrix_to_quaternion(R: Tensor) -> Tensor:
     return torch.where(q[:, :1] < 0, -q, q)
 
 
+@float32
 def matrix_to_angle_axis(R: Tensor) -> Tensor:
     """Angle-axis vectors (B, 3), angle in ``[0, pi]``, from rotation matrices (B, 3, 3)."""
     q = matrix_to_quaternion(R)
@@ -214,6 +219,7 @@ def _project(
     return u2, v2, z, valid
 
 
+@float32
 def flow_from_depth_motion(
     inv_depth: Tensor, motion: Tensor, intrinsics: Tensor, intrinsics2: Tensor | None = None
 ) -> Tensor:
@@ -235,6 +241,7 @@ def flow_from_depth_motion(
     return torch.where(valid.unsqueeze(1), flow, torch.full_like(flow, math.nan))
 
 
+@float32
 def reproject(
     inv_depth: Tensor, motion: Tensor, intrinsics: Tensor, intrinsics2: Tensor | None = None
 ) -> tuple[Tensor, Tensor]:
@@ -257,6 +264,7 @@ def reproject(
     return torch.where(valid.unsqueeze(1), coords, nan.unsqueeze(1)), inv2.unsqueeze(1)
 
 
+@float32
 def triangulation_angle(inv_depth: Tensor, motion: Tensor, intrinsics: Tensor) -> Tensor:
     """Angle at each view-1 point between the rays to the two camera centres, in degrees.
 
@@ -282,6 +290,7 @@ def triangulation_angle(inv_depth: Tensor, motion: Tensor, intrinsics: Tensor) -
     return torch.where(valid, angle, torch.full_like(angle, math.nan))
 
 
+@float32
 def visibility_mask(
     inv_depth: Tensor, motion: Tensor, intrinsics: Tensor, intrinsics2: Tensor | None = None
 ) -> Tensor:
@@ -298,6 +307,7 @@ def visibility_mask(
     return (valid & inside).unsqueeze(1)
 
 
+@float32
 def depth_from_flow_motion(
     flow: Tensor,
     motion: Tensor,
@@ -385,6 +395,7 @@ def _check_warp_inputs(image: Tensor, flow: Tensor) -> tuple[int, int, int, int]
     return batch, channels, height, width
 
 
+@float32
 def warp_image(image: Tensor, flow: Tensor) -> Tensor:
     """Backward-warp image 2 into view 1 with bilinear interpolation (DeMoN's ``warp2d``).
 
@@ -422,6 +433,7 @@ def warp_image(image: Tensor, flow: Tensor) -> Tensor:
                          align_corners=False)
 
 
+@float32
 def warp2d(image: Tensor, flow: Tensor) -> Tensor:
     """DeMoN's ``warp2d`` exactly (lmbspecialops' `src/warp2d.cc`, as DeMoN's graph calls it:
     ``normalized=True, border_mode='value'``, border value 0); ``model.compat=demon_original``.
@@ -459,6 +471,7 @@ def warp2d(image: Tensor, flow: Tensor) -> Tensor:
 # ----------------------------------------------------------------------------- normals
 
 
+@float32
 def normals_from_depth(inv_depth: Tensor, intrinsics: Tensor) -> Tensor:
     """Unit surface normals of view 1 from its inverse depth (DeMoN's ``depth_to_normals``).
 
@@ -514,6 +527,7 @@ def _unit(n: Tensor) -> Tensor:
 # ----------------------------------------------------------------------------- loss helpers
 
 
+@float32
 def scale_invariant_gradients(
     x: Tensor, spacings: Sequence[int] = (1, 2, 4, 8, 16), eps: float = 1e-3
 ) -> Tensor:
@@ -550,6 +564,7 @@ def scale_invariant_gradients(
     return torch.stack(terms, dim=2)
 
 
+@float32
 def median_downsample(x: Tensor) -> Tensor:
     """Halve the resolution with 3x3 medians (DeMoN's ``median3x3_downsample``).
 
@@ -592,6 +607,7 @@ input: tests/test_geometry.py): the 3x3 windows sorted by 50 element-wise min/ma
 than ``Tensor.sort`` over a window dimension on the cpu scale's batches."""
 
 
+@float32
 def inverse_depth_pyramid(inv_depth: Tensor, levels: int = 5) -> list[Tensor]:
     """Ground-truth pyramid by recursive median downsampling (DeMoN's
     ``recursive_median_downsample`` in `python/depthmotionnet/v2/helpers.py`; docs/reference.md §3-§4).

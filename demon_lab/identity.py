@@ -24,13 +24,20 @@ import json
 from collections.abc import Iterable, Mapping
 from typing import Any
 
+from demon_lab.execution import normalize_precision
+
 CODE_VERSION = 2
 """Bump when the training code changes what a stage produces."""
 
 NON_SEMANTIC = ("tracking", "force", "hydra", "cache_dir", "eval.visualize", "eval.point_clouds", "row",
-                "data.num_workers", "threads")
+                "data.num_workers", "threads", "model.channels_last", "model.compile")
 """Config keys (and whole subtrees) that do not change what a job computes: where it logs and
-caches, how many threads and loader workers it uses, what it draws, which report row it is."""
+caches, how many threads and loader workers it uses, the nets' memory layout and compilation (they
+change floating-point rounding at most, as the thread count does), what it draws, which report row
+it is."""
+
+EXECUTION_KEYS = ("channels_last", "compile")
+"""Keys of ``model`` that say how the nets run, not what they are (in :data:`NON_SEMANTIC`)."""
 
 
 def versions() -> dict[str, int]:
@@ -72,8 +79,9 @@ def model_identity(model: dict[str, Any]) -> dict[str, Any]:
     """A plain ``model`` config with ``weights`` named by the file's content (``sha256:...``), not
     its path: a moved file keeps its keys, a changed one gets new ones. ``compat`` and ``weights``
     at their defaults (null) are left out, so the keys of configs without them are those they had
-    before the two keys existed."""
-    model = {k: v for k, v in model.items() if not (k in ("compat", "weights") and v is None)}
+    before the two keys existed; so are :data:`EXECUTION_KEYS`, which never change a key."""
+    model = {k: v for k, v in model.items()
+             if not (k in ("compat", "weights") and v is None) and k not in EXECUTION_KEYS}
     if not model.get("weights"):
         return model
     from demon_lab.weights import describe
@@ -97,6 +105,9 @@ def semantic_config(cfg) -> dict[str, Any]:
             node.pop(leaf, None)
     if isinstance(plain.get("model"), dict):
         plain["model"] = model_identity(plain["model"])
+    precision = plain.pop("precision", 32)
+    if normalize_precision(precision) != "32-true":  # the default is left out: keys from before it existed hold
+        plain["precision"] = normalize_precision(precision)
     return _portable(plain)
 
 

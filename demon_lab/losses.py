@@ -18,6 +18,7 @@ from collections.abc import Mapping
 import torch
 
 from demon_lab import geometry as geo
+from demon_lab.execution import float32
 
 EPS = 1e-5
 WEIGHT_KEYS = ("flow", "flow_conf", "flow_sig", "flow_conf_sig", "depth", "depth_sig", "normals",
@@ -41,6 +42,7 @@ def stage_weight_keys(kind: str, sig_start: float = 0.0) -> tuple[str, ...]:
 Terms = dict[str, torch.Tensor]
 
 
+@float32
 def pointwise_l2(pred: torch.Tensor, gt: torch.Tensor, eps: float = EPS) -> torch.Tensor:
     """Mean over (batch, y, x) of sqrt(sum over channels of (pred - gt)^2 + eps); (B, C, H, W).
     Pixels without ground truth (non-finite ``gt``) count as zero error; a non-finite prediction
@@ -51,6 +53,7 @@ def pointwise_l2(pred: torch.Tensor, gt: torch.Tensor, eps: float = EPS) -> torc
     return torch.sqrt((d * d).sum(1) + eps).mean()
 
 
+@float32
 def sig_loss(pred: torch.Tensor, gt: torch.Tensor, eps_pred: float = 1e-3, eps_gt: float = 1e-3) -> torch.Tensor:
     """Point-wise loss between scale-invariant gradient images (spacings 1, 2, 4, 8, 16), one
     Euclidean norm over the 10 gradient channels per pixel; channels of a map are separate items."""
@@ -67,12 +70,14 @@ def _sig_term(weight: float, pred: torch.Tensor, gt: torch.Tensor, *eps: float) 
     return weight * sig_loss(pred, gt, *eps)
 
 
+@float32
 def vector_loss(pred: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
     """DeMoN's motion loss: mean over the batch of sum_xyz sqrt((pred - gt)^2 + eps) (B, 3)."""
     d = pred - gt.detach()
     return torch.sqrt(d * d + EPS).sum(1).mean()
 
 
+@float32
 def confidence_target(flow_pred: torch.Tensor, flow_gt: torch.Tensor, scale: float = 10.0) -> torch.Tensor:
     """GT of the confidence: exp(-scale |f_pred - f_gt|) per component, with the current
     prediction (stop-gradient; DeMoN's conf_diff_scale = 10 on normalised flow)."""
@@ -83,6 +88,7 @@ def _weighted(terms: Terms) -> torch.Tensor:
     return sum(terms.values(), torch.zeros(()))
 
 
+@float32
 def flow_loss(flowconf5: torch.Tensor, flowconf2: torch.Tensor, gt: Mapping[str, torch.Tensor],
               weights: Mapping[str, float], ramp: float = 1.0, level5: float = 1.0) -> tuple[torch.Tensor, Terms]:
     """Loss of a flow net: flow and confidence at levels 2 and 5, sig of flow and confidence.
@@ -107,6 +113,7 @@ def flow_loss(flowconf5: torch.Tensor, flowconf2: torch.Tensor, gt: Mapping[str,
     return _weighted(terms), terms
 
 
+@float32
 def depth_motion_loss(inv_depth: torch.Tensor, normals: torch.Tensor, motion: torch.Tensor,
                       gt: Mapping[str, torch.Tensor], weights: Mapping[str, float],
                       ramp: float = 1.0) -> tuple[torch.Tensor, Terms]:
@@ -125,6 +132,7 @@ def depth_motion_loss(inv_depth: torch.Tensor, normals: torch.Tensor, motion: to
     return _weighted(terms), terms
 
 
+@float32
 def refine_loss(refined: torch.Tensor, gt: Mapping[str, torch.Tensor], weights: Mapping[str, float],
                 ramp: float = 1.0) -> tuple[torch.Tensor, Terms]:
     """Loss of the refinement net at full resolution: depth, its sig, and (v2) normals."""

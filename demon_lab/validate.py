@@ -157,6 +157,28 @@ def _baseline(node: DictConfig) -> None:
         raise ConfigError(f"baseline.sweep_window: expected an odd integer, got {window}")
 
 
+def _execution(cfg: DictConfig) -> None:
+    """``precision``, ``model.channels_last`` and ``model.compile``: known values, and ones this
+    platform can run on the device the job trains on (one line where it cannot)."""
+    from demon_lab import execution
+
+    try:
+        execution.normalize_precision(cfg.get("precision", 32))
+    except ValueError as e:
+        raise ConfigError(str(e)) from None
+    for key in ("channels_last", "compile"):
+        if not isinstance(cfg.model.get(key, False), bool):
+            raise ConfigError(f"model.{key}: expected true or false, got {cfg.model[key]!r}")
+    if cfg.method not in CHAIN_METHODS:
+        return
+    device = execution.resolve_accelerator(cfg.trainer.accelerator)
+    problem = execution.precision_problem(cfg.get("precision", 32), device)
+    if problem is None and cfg.model.get("compile", False):
+        problem = execution.compile_problem(device)
+    if problem is not None:
+        raise ConfigError(problem)
+
+
 def validate(cfg: DictConfig) -> None:
     try:
         OmegaConf.to_container(cfg, resolve=True, throw_on_missing=True)
@@ -240,6 +262,7 @@ def validate(cfg: DictConfig) -> None:
     _choice("trainer.accelerator", cfg.trainer.accelerator, ("auto", "cpu", "gpu", "cuda", "mps"))
     _int("trainer.devices", cfg.trainer.devices, 1)
     _int("trainer.num_nodes", cfg.trainer.num_nodes, 1)
+    _execution(cfg)
     world = cfg.trainer.devices * cfg.trainer.num_nodes
     for name in stages:
         batch = cfg.schedule.stages[name].get("batch_size") or cfg.data.batch_size

@@ -13,7 +13,11 @@ from demon_lab.resources import DATA
 
 SUN3D_PAIR = DATA / "sun3d_train_0.1m_to_0.2m_00000"
 
-DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
+CUDA = pytest.param("cuda", id="cuda", marks=[pytest.mark.cuda, pytest.mark.skipif(
+    not torch.cuda.is_available(), reason="no CUDA device on this machine: the cuda cases run on a GPU "
+    "(scripts/device_check.sh runs them there)")])
+DEVICES = ["cpu", CUDA]
+"""Device parametrisation: the cpu case everywhere, the cuda case (marker ``cuda``) where a GPU is."""
 
 
 def free_port() -> int:

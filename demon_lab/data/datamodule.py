@@ -38,6 +38,7 @@ class DemonDataModule(L.LightningDataModule):
         rank: int = 0,
         world: int = 1,
         easy_first: Sequence[float] | None = None,
+        pin_memory: bool = False,
     ):
         super().__init__()
         self.train_sources = [(float(e["weight"]), e["dataset"]) for e in train]
@@ -46,11 +47,13 @@ class DemonDataModule(L.LightningDataModule):
         self.samples_per_epoch, self.seed, self.skip = int(samples_per_epoch), int(seed), int(skip)
         self.rank, self.world = int(rank), int(world)  # data-parallel: this process's share of each batch
         self.easy_first = None if easy_first is None else tuple(easy_first)  # curriculum: MixtureSampler
+        self.pin_memory = bool(pin_memory)  # page-locked batches: asynchronous copies to a CUDA device
         self._sampler: MixtureSampler | None = None
 
     def _loader(self, dataset, **kwargs) -> DataLoader:
         return DataLoader(dataset, batch_size=self.batch_size, num_workers=self.num_workers,
                           worker_init_fn=_seed_worker, persistent_workers=self.num_workers > 0,
+                          pin_memory=self.pin_memory,
                           generator=torch.Generator().manual_seed(self.seed), **kwargs)
 
     def train_dataloader(self) -> DataLoader:

@@ -23,6 +23,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from demon_lab import geometry as geo
+from demon_lab.execution import float32
 from demon_lab.nets.blocks import check_size, check_variant
 from demon_lab.nets.depth_motion_net import DepthMotionNet
 from demon_lab.nets.flow_net import FlowNet
@@ -82,6 +83,7 @@ class GroundTruthInputs:
     motion: torch.Tensor
 
 
+@float32
 def ground_truth_inputs(gt: dict, intrinsics: torch.Tensor) -> GroundTruthInputs:
     inv2 = geo.inverse_depth_pyramid(gt["inv_depth"], levels=2)[2]
     return GroundTruthInputs(
@@ -89,6 +91,7 @@ def ground_truth_inputs(gt: dict, intrinsics: torch.Tensor) -> GroundTruthInputs
         inv_depth=inv2, normals=geo.normals_from_depth(inv2, intrinsics), motion=gt["motion"])
 
 
+@float32
 def flow_net_inputs(image2_2: torch.Tensor, inv_depth: torch.Tensor, normals: torch.Tensor,
                     motion: torch.Tensor, intrinsics: torch.Tensor, compat: str | None = None) -> torch.Tensor:
     """The iterative flow net's 9 extra channels (stop-gradient): image 2 warped with the flow of
@@ -106,6 +109,7 @@ def flow_net_inputs(image2_2: torch.Tensor, inv_depth: torch.Tensor, normals: to
         return torch.cat([warped, flow, finite(inv_depth), finite(normals)], 1)
 
 
+@float32
 def depth_motion_net_inputs(image2_2: torch.Tensor, flow: torch.Tensor, conf: torch.Tensor,
                             prev_motion: torch.Tensor | None, intrinsics: torch.Tensor,
                             compat: str | None = None) -> torch.Tensor:

@@ -81,12 +81,12 @@ class DepthMotionNet(nn.Module):
             m5a = self.motion_conv5a(self.motion_conv4(self.motion_conv3(conv2_1)))
             m = torch.cat([m5a, self.motion_conv5b(self.dense5(conv5_1))], 1)
         m = lrelu(self.motion_fc2(lrelu(self.motion_fc1(m.flatten(1)))))
-        motion_scale = self.motion_fc3(m)
+        motion_scale = self.motion_fc3(m).float()  # float32 out, also under autocast
         # The decoder starts from conv5_1 in both variants (not from v2's dense5 output).
         r4 = torch.cat([self.refine4(conv5_1), conv4_1], 1)
         r3 = torch.cat([self.refine3(r4), conv3_1], 1)
         r2 = torch.cat([self.refine2(r3), conv2_1], 1)
-        out = self.predict_depth2(r2)
+        out = self.predict_depth2(r2).float()
         scale = motion_scale[:, 6:7]
         return DepthMotion(inv_depth=out[:, :1] * scale[:, :, None, None], normals=out[:, 1:4],
                            motion=motion_scale[:, :6], scale=scale)

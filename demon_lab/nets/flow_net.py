@@ -82,4 +82,4 @@ class FlowNet(nn.Module):
         r4 = torch.cat([self.refine4(conv5_1), conv4_1, self.upsample_flow5to4(flowconf5)], 1)
         r3 = torch.cat([self.refine3(r4), conv3_1], 1)
         r2 = torch.cat([self.refine2(r3), conv2_1], 1)
-        return flowconf5, self.predict_flow2(r2)
+        return flowconf5.float(), self.predict_flow2(r2).float()  # float32 out, also under autocast

@@ -39,4 +39,4 @@ class RefineNet(nn.Module):
         conv2_1 = self.conv2_1(self.conv2(conv1_1))
         r1 = torch.cat([self.refine1(conv2_1), conv1_1], 1)
         r0 = torch.cat([self.refine0(r1), conv0], 1)
-        return self.predict_depth0(r0)
+        return self.predict_depth0(r0).float()  # float32 out, also under autocast

@@ -16,7 +16,7 @@ from collections.abc import Mapping, Sequence
 import lightning as L
 import torch
 
-from demon_lab import losses
+from demon_lab import execution, losses
 from demon_lab.nets.chain import DeMoN, downsample_image
 
 LR_SCHEDULES = ("released", "supplementary")
@@ -47,11 +47,13 @@ class StageModule(L.LightningModule):
         warmup_steps: linear learning-rate warm-up (0: none, as DeMoN).
         oracle: ground-truth inputs during training ('flow' for depth-motion stages,
             'depth_motion' for flow stages of the iterative net), or None.
+        channels_last: the batch's images in channels-last layout (the chain's nets already are:
+            :func:`demon_lab.execution.prepare_nets`).
     """
 
     def __init__(self, chain: DeMoN, trained: Sequence[str], weights: Mapping[str, float], steps: int,
                  lr: float, lr_schedule: str = "released", weight_decay: float = 0.0,
-                 oracle: str | None = None, warmup_steps: int = 0):
+                 oracle: str | None = None, warmup_steps: int = 0, channels_last: bool = False):
         super().__init__()
         self.chain = chain
         self.trained = list(trained)
@@ -59,6 +61,7 @@ class StageModule(L.LightningModule):
         self.steps, self.base_lr, self.lr_schedule = int(steps), float(lr), lr_schedule
         self.weight_decay, self.oracle, self.warmup_steps = float(weight_decay), oracle, int(warmup_steps)
         learning_rate(0, self.steps, self.base_lr, lr_schedule)  # validates the schedule name
+        self.channels_last = bool(channels_last)
         self.freeze_upstream()
         self.last_terms: dict[str, float] = {}
 
@@ -93,6 +96,9 @@ class StageModule(L.LightningModule):
             optimizer, lambda step: learning_rate(step, self.steps, self.base_lr, self.lr_schedule,
                                                   self.warmup_steps) / self.base_lr)
         return {"optimizer": optimizer, "lr_scheduler": {"scheduler": scheduler, "interval": "step"}}
+
+    def on_after_batch_transfer(self, batch, dataloader_idx: int):
+        return execution.channels_last_batch(batch, self.channels_last)
 
     def inputs(self, batch: Mapping[str, torch.Tensor]):
         pair = torch.cat([batch["image1"], batch["image2"]], 1)

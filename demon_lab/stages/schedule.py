@@ -14,6 +14,7 @@ from typing import Any
 from omegaconf import DictConfig, OmegaConf
 
 from demon_lab import losses
+from demon_lab.execution import normalize_precision, prepare_nets
 from demon_lab.identity import model_identity, stage_key
 from demon_lab.nets.chain import DeMoN
 from demon_lab.stages.cache import CheckpointError, StageDir
@@ -47,6 +48,9 @@ def describe_stage(cfg: DictConfig, name: str, upstream: dict[str, str]) -> dict
         "train_data": plain(cfg.data.train),
         "seed": cfg.seed,
         "upstream": dict(upstream),
+        # the nets' precision when it is not float32 (left out at 32: the keys from before it existed hold)
+        **({"precision": precision} if (precision := normalize_precision(cfg.get("precision", 32))) != "32-true"
+           else {}),
     }
 
 
@@ -64,13 +68,14 @@ def stage_dirs(cfg: DictConfig) -> list[StageDir]:
 
 def build_chain(cfg: DictConfig) -> DeMoN:
     """The chain of the config's variant, width, input size and compat mode: untrained, or with
-    ``model.weights`` loaded (:func:`demon_lab.weights.load_weights`)."""
+    ``model.weights`` loaded (:func:`demon_lab.weights.load_weights`); its nets in channels-last
+    layout and compiled when ``model.channels_last`` / ``model.compile`` ask for it."""
     chain = DeMoN(cfg.model.variant, float(cfg.model.width), tuple(cfg.data.size), cfg.model.get("compat"))
     if cfg.model.get("weights"):
         from demon_lab.weights import load_weights
 
         load_weights(chain, cfg.model.weights)
-    return chain
+    return prepare_nets(chain, bool(cfg.model.get("channels_last", False)), bool(cfg.model.get("compile", False)))
 
 
 def load_stage(chain: DeMoN, stage: StageDir) -> None:

@@ -17,6 +17,7 @@ from collections.abc import Callable
 import lightning as L
 from omegaconf import DictConfig, OmegaConf
 
+from demon_lab.execution import normalize_precision, plain_state, resolve_accelerator
 from demon_lab.nets.chain import DeMoN
 from demon_lab.stages.cache import StageDir, atomic_checkpoint_io, load_checkpoint
 from demon_lab.stages.modules import STAGE_KINDS
@@ -56,9 +57,11 @@ def processes_launched_outside() -> bool:
     return any(os.environ.get(var, "").isdigit() for var in ("RANK", "SLURM_PROCID", "LOCAL_RANK"))
 
 
-def build_datamodule(cfg: DictConfig, batch_size: int, samples: int, skip: int = 0, easy_first=None):
+def build_datamodule(cfg: DictConfig, batch_size: int, samples: int, skip: int = 0, easy_first=None,
+                     pin_memory: bool = False):
     """Training data for ``samples`` draws in batches of ``batch_size`` (global: under DDP each
-    process loads its share of every batch); ``easy_first``: a stage's curriculum (MixtureSampler)."""
+    process loads its share of every batch); ``easy_first``: a stage's curriculum (MixtureSampler);
+    ``pin_memory``: batches in page-locked memory (faster copies to a CUDA device)."""
     from demon_lab.config import instantiate
     from demon_lab.data.datamodule import DemonDataModule
 
@@ -66,7 +69,7 @@ def build_datamodule(cfg: DictConfig, batch_size: int, samples: int, skip: int =
     world = world_size(cfg)
     return DemonDataModule(train=train, batch_size=batch_size // world, num_workers=cfg.data.num_workers,
                            samples_per_epoch=samples, seed=cfg.seed, skip=skip, rank=global_rank(cfg), world=world,
-                           easy_first=easy_first)
+                           easy_first=easy_first, pin_memory=pin_memory)
 
 
 def train_stage(cfg: DictConfig, chain: DeMoN, stage: StageDir, logger: L.pytorch.loggers.Logger | None,
@@ -75,7 +78,7 @@ def train_stage(cfg: DictConfig, chain: DeMoN, stage: StageDir, logger: L.pytorc
     spec = cfg.schedule.stages[stage.name]
     if int(spec.steps) == 0:  # trains nothing: the nets as they are (from model.weights or an earlier stage)
         if global_rank(cfg) == 0:
-            stage.save({net: getattr(chain, net).state_dict() for net in TRAINED_NETS[stage.name]})
+            stage.save({net: plain_state(getattr(chain, net)) for net in TRAINED_NETS[stage.name]})
         log.info("stage %s: 0 steps: keeps %s as they are (from model.weights or an earlier stage)", stage.name,
                  ", ".join(TRAINED_NETS[stage.name]))
         return {"seconds": 0.0, "steps_per_second": 0.0, "resumed_from_step": 0}
@@ -94,7 +97,8 @@ def train_stage(cfg: DictConfig, chain: DeMoN, stage: StageDir, logger: L.pytorc
         kwargs.update(level5_fade=float(spec.level5_fade))
     if kind == "depth_motion" and spec.get("gt_flow_warmup") is not None:
         kwargs.update(gt_flow_warmup=float(spec.gt_flow_warmup))
-    module = STAGE_KINDS[kind](chain, weights=OmegaConf.to_container(cfg.loss, resolve=True), **kwargs)
+    module = STAGE_KINDS[kind](chain, weights=OmegaConf.to_container(cfg.loss, resolve=True),
+                               channels_last=bool(cfg.model.get("channels_last", False)), **kwargs)
     batch = int(spec.get("batch_size") or cfg.data.batch_size)
     resume = stage.last_checkpoint if stage.last_checkpoint.is_file() else None
     start_step = _checkpoint_step(resume) if resume is not None else 0
@@ -103,7 +107,8 @@ def train_stage(cfg: DictConfig, chain: DeMoN, stage: StageDir, logger: L.pytorc
     # With DDP the global batch is the configured one, each process taking its slice of every batch
     # (demon_lab's sampler deals them, not Lightning's, which would reshuffle the sequence).
     datamodule = build_datamodule(cfg, batch, int(spec.steps) * batch, skip=start_step * batch,
-                                  easy_first=spec.get("easy_first"))
+                                  easy_first=spec.get("easy_first"),
+                                  pin_memory=resolve_accelerator(cfg.trainer.accelerator) == "cuda")
     checkpoint = L.pytorch.callbacks.ModelCheckpoint(
         dirpath=stage.path, filename="step{step}", save_last=True, save_top_k=0,
         every_n_train_steps=max(1, int(cfg.scale.get("checkpoint_every", 50))), auto_insert_metric_name=False)
@@ -119,6 +124,7 @@ def train_stage(cfg: DictConfig, chain: DeMoN, stage: StageDir, logger: L.pytorc
         max_steps=int(spec.steps), accelerator=cfg.trainer.accelerator, devices=int(cfg.trainer.devices),
         num_nodes=int(cfg.trainer.num_nodes), strategy="ddp" if world_size(cfg) > 1 else "auto",
         logger=logger if logger is not None else False, callbacks=callbacks,
+        precision=normalize_precision(cfg.get("precision", 32)),
         log_every_n_steps=int(cfg.tracking.log_every_n_steps), gradient_clip_val=float(cfg.schedule.grad_clip),
         gradient_clip_algorithm="value", enable_progress_bar=progress, enable_model_summary=False,
         num_sanity_val_steps=0, limit_val_batches=0, deterministic="warn", benchmark=False,
@@ -134,7 +140,7 @@ def train_stage(cfg: DictConfig, chain: DeMoN, stage: StageDir, logger: L.pytorc
         raise TrainingDiverged(f"stage {stage.name}: {e}") from e
     seconds = time.perf_counter() - start
     if global_rank(cfg) == 0:
-        stage.save({net: getattr(chain, net).state_dict() for net in TRAINED_NETS[stage.name]})
+        stage.save({net: plain_state(getattr(chain, net)) for net in TRAINED_NETS[stage.name]})
     steps_done = int(spec.steps) - start_step
     figures = {"seconds": seconds, "steps_per_second": steps_done / max(seconds, 1e-9), "resumed_from_step": start_step,
                **{f"final/{k}": v for k, v in module.last_terms.items()}}

@@ -23,7 +23,7 @@ from collections.abc import Sequence
 import lightning as L
 import torch
 
-from demon_lab import losses, metrics
+from demon_lab import execution, losses, metrics
 from demon_lab.nets.chain import downsample_image
 
 MOTION_STAGES = ("dm1", "dm2", "iterative")
@@ -53,10 +53,12 @@ class StageValidation(L.Callback):
         chain_training = chain.training
         chain.eval()
         try:
-            with torch.no_grad():
+            # the stage's precision (its autocast region; losses and geometry stay float32 inside)
+            with torch.no_grad(), trainer.precision_plugin.forward_context():
                 values = {}
                 for dataset in self.datasets:
-                    values.update({f"val/{dataset.name}/{k}": v for k, v in self._scores(chain, dataset).items()})
+                    scores = self._scores(chain, dataset, getattr(module, "channels_last", False))
+                    values.update({f"val/{dataset.name}/{k}": v for k, v in scores.items()})
         finally:
             chain.training = chain_training  # the container's own flag, then each net's
             for name, net in module.nets():
@@ -67,12 +69,13 @@ class StageValidation(L.Callback):
             values = {k: v for k, v in values.items() if not k.endswith("zero_flow_epe")}
         trainer.logger.log_metrics({k: v for k, v in values.items() if math.isfinite(v)}, step=step)
 
-    def _scores(self, chain, dataset) -> dict[str, float]:
+    def _scores(self, chain, dataset, channels_last: bool = False) -> dict[str, float]:
         rows: dict[str, list[float]] = {"epe": [], "zero_flow_epe": [], "rot_deg": [], "tran_deg": [], "l1_inv": []}
         loader = torch.utils.data.DataLoader(dataset, batch_size=self.batch_size, shuffle=False)
         device = next(chain.parameters()).device
         for batch in loader:
             b = {k: v.to(device) if isinstance(v, torch.Tensor) else v for k, v in batch.items()}
+            b = execution.channels_last_batch(b, channels_last)
             pair = torch.cat([b["image1"], b["image2"]], 1)
             image2_2, K = downsample_image(b["image2"]), b["intrinsics"]
             p = chain.bootstrap(pair, image2_2, K)

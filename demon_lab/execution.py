@@ -1,0 +1,195 @@
+"""How the chain runs: on which device, in which precision, in which memory format, compiled or not.
+
+None of these change what a job computes beyond floating-point rounding, except ``precision``:
+
+- ``precision`` (Lightning's names: ``32`` / ``32-true``, ``bf16-mixed``, ``16-mixed``): the nets'
+  convolutions and matrix products run in bfloat16 or float16 under ``torch.autocast``, for training
+  (Lightning's precision plugin, with loss scaling for float16) and evaluation. Everything outside the
+  nets stays float32: the nets return float32 and the functions marked :func:`float32` (the geometry
+  layers: triangulation, rotations, warps, normals; the losses with their scale-invariant gradients;
+  the nets' input builders) run with autocast off on float32 inputs. A non-default precision is part
+  of a stage's and a run's key: bf16-trained weights are other weights.
+- ``model.channels_last``: the nets' weights and the images in NHWC memory layout (tensor cores
+  read it without a transpose); ``model.compile``: ``torch.compile`` of each net (in place, so
+  checkpoints keep their keys). Neither is part of any key.
+- the device: training's is Lightning's (``trainer.accelerator``); evaluation runs on the same
+  kind of device (:func:`evaluation_device`).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import functools
+import os
+import shutil
+from collections.abc import Callable, Iterator
+from typing import Any, TypeVar
+
+import torch
+
+PRECISIONS = ("32-true", "bf16-mixed", "16-mixed")
+"""The precisions demon_lab trains and evaluates in (Lightning's names)."""
+
+_ALIASES = {"32": "32-true", "32-true": "32-true", "bf16": "bf16-mixed", "bf16-mixed": "bf16-mixed",
+            "16": "16-mixed", "16-mixed": "16-mixed"}
+_DTYPES = {"bf16-mixed": torch.bfloat16, "16-mixed": torch.float16}
+_AUTOCAST_DEVICES = ("cuda", "cpu")
+
+F = TypeVar("F", bound=Callable[..., Any])
+
+
+def normalize_precision(value: Any) -> str:
+    """Lightning's name of a precision setting (``32`` and ``"32"`` are ``"32-true"``, ``"bf16"`` is
+    ``"bf16-mixed"``, ``"16"`` is ``"16-mixed"``); ValueError for anything else."""
+    name = _ALIASES.get(str(value)) if not isinstance(value, bool) else None
+    if name is None:
+        raise ValueError(f"precision: expected one of 32, bf16-mixed, 16-mixed, got {value!r}")
+    return name
+
+
+def autocast_dtype(precision: Any) -> torch.dtype | None:
+    """The dtype the nets compute in under ``precision`` (None: float32, no autocast)."""
+    return _DTYPES.get(normalize_precision(precision))
+
+
+def autocast(device: torch.device | str, precision: Any) -> contextlib.AbstractContextManager:
+    """The nets' autocast region for ``precision`` on ``device`` (a no-op for ``32``)."""
+    dtype = autocast_dtype(precision)
+    if dtype is None:
+        return contextlib.nullcontext()
+    return torch.autocast(torch.device(device).type, dtype=dtype)
+
+
+def _autocast_on(device_type: str) -> bool:
+    try:
+        return torch.is_autocast_enabled(device_type)
+    except TypeError:  # torch < 2.4: one query per device type
+        return torch.is_autocast_cpu_enabled() if device_type == "cpu" else torch.is_autocast_enabled()
+
+
+def _to_float32(x: Any) -> Any:
+    if isinstance(x, torch.Tensor):
+        return x.float() if x.dtype in (torch.bfloat16, torch.float16) else x
+    if isinstance(x, dict):
+        return {k: _to_float32(v) for k, v in x.items()}
+    if isinstance(x, list | tuple) and not hasattr(x, "_fields"):
+        return type(x)(_to_float32(v) for v in x)
+    return x
+
+
+def float32(fn: F) -> F:
+    """Run ``fn`` in float32 inside an autocast region: autocast off, half-precision tensor
+    arguments (also inside dicts, lists and tuples) cast to float32. Outside autocast it is ``fn``
+    itself, called as it is (the float32 path is unchanged to the last bit)."""
+
+    @functools.wraps(fn)
+    def island(*args, **kwargs):
+        active = [d for d in _AUTOCAST_DEVICES if _autocast_on(d)]
+        if not active:
+            return fn(*args, **kwargs)
+        with contextlib.ExitStack() as stack:
+            for device_type in active:
+                stack.enter_context(torch.autocast(device_type, enabled=False))
+            return fn(*_to_float32(args), **_to_float32(kwargs))
+
+    island.float32_island = True  # type: ignore[attr-defined]
+    return island  # type: ignore[return-value]
+
+
+def resolve_accelerator(accelerator: str) -> str:
+    """The device type Lightning's ``accelerator`` setting trains on: ``cuda``, ``mps`` or ``cpu``."""
+    accelerator = str(accelerator)
+    if accelerator in ("gpu", "cuda"):
+        return "cuda"
+    if accelerator == "auto":
+        if torch.cuda.is_available():
+            return "cuda"
+        mps = getattr(torch.backends, "mps", None)
+        return "mps" if mps is not None and mps.is_available() else "cpu"
+    return accelerator
+
+
+def evaluation_device(cfg) -> torch.device:
+    """Where a job evaluates the chain: the device type it trains on (``trainer.accelerator``),
+    this process's GPU (``LOCAL_RANK``) when that is CUDA."""
+    kind = resolve_accelerator(cfg.trainer.accelerator)
+    if kind == "cuda":
+        local = os.environ.get("LOCAL_RANK", "0")
+        return torch.device("cuda", int(local) if local.isdigit() else 0)
+    return torch.device(kind)
+
+
+def precision_problem(precision: Any, device_type: str) -> str | None:
+    """Why ``precision`` cannot run on ``device_type`` (one line), or None."""
+    name = normalize_precision(precision)
+    if name == "16-mixed" and device_type != "cuda":
+        return (f"precision=16-mixed needs a CUDA device (float16 autocast with loss scaling); this job runs on "
+                f"{device_type}: use bf16-mixed or 32 there")
+    if name == "bf16-mixed" and device_type == "cuda" and torch.cuda.is_available() \
+            and not torch.cuda.is_bf16_supported():
+        return "precision=bf16-mixed: this GPU has no bfloat16 support; use 16-mixed or 32"
+    return None
+
+
+def compile_problem(device_type: str) -> str | None:
+    """Why ``torch.compile`` cannot compile the nets on this platform for ``device_type`` (one
+    line), or None: TorchDynamo unsupported here (a Python newer than this torch knows, Windows
+    before torch 2.5), or no C++ compiler for Inductor's CPU kernels."""
+    try:
+        import torch._dynamo
+
+        if not torch._dynamo.is_dynamo_supported():
+            import sys
+
+            return (f"model.compile=true: torch {torch.__version__} cannot compile on this platform "
+                    f"(Python {sys.version.split()[0]}, {sys.platform}); leave model.compile=false")
+    except Exception as e:  # an import failure is the same answer
+        return f"model.compile=true: torch.compile is unavailable ({type(e).__name__}: {e}); leave model.compile=false"
+    if device_type == "cpu":
+        compiler = os.environ.get("CXX") or next((c for c in ("c++", "g++", "clang++") if shutil.which(c)), None)
+        if compiler is None or shutil.which(compiler) is None:
+            return ("model.compile=true on the CPU needs a C++ compiler for torch.compile's kernels (none found: "
+                    "install g++ or set CXX); leave model.compile=false")
+    return None
+
+
+NETS = ("flow1", "dm1", "flow2", "dm2", "refine_net")
+
+
+def prepare_nets(chain: torch.nn.Module, channels_last: bool = False, compile: bool = False) -> torch.nn.Module:
+    """Put the chain's nets in the memory format and compilation asked for (in place; returns it).
+    Compilation wraps each net's call (``nn.Module.compile``): its parameters and state-dict keys are
+    unchanged, so stages load and save as without it."""
+    if channels_last:
+        chain.to(memory_format=torch.channels_last)
+    if compile:
+        for name in NETS:
+            net = getattr(chain, name)
+            if not getattr(net, "_compiled_call_impl", None):
+                net.compile()
+    return chain
+
+
+def channels_last_batch(batch: dict, channels_last: bool) -> dict:
+    """The batch's image-like (4-d) tensors in channels-last layout, when asked for."""
+    if not channels_last:
+        return batch
+    return {k: v.contiguous(memory_format=torch.channels_last) if isinstance(v, torch.Tensor) and v.dim() == 4
+            else v for k, v in batch.items()}
+
+
+def plain_state(net: torch.nn.Module) -> dict[str, torch.Tensor]:
+    """``net``'s state dict with every tensor in the default contiguous layout (a stage saved from
+    a channels-last chain is the same file as one saved without it)."""
+    return {k: v.contiguous() for k, v in net.state_dict().items()}
+
+
+@contextlib.contextmanager
+def peak_memory(device: torch.device) -> Iterator[dict[str, float]]:
+    """Peak memory the block allocated on a CUDA device (``{"peak_gib": ...}``; empty elsewhere)."""
+    out: dict[str, float] = {}
+    if device.type == "cuda":
+        torch.cuda.reset_peak_memory_stats(device)
+    yield out
+    if device.type == "cuda":
+        out["peak_gib"] = torch.cuda.max_memory_allocated(device) / 2**30
