@@ -5,7 +5,8 @@ Absolute times vary between machines, so every section also reports ratios measu
 run (a geometry op against its OpenCV counterpart). Sections:
 
 * ``geometry``: the geometry layers at 256x192, batch 8, float32, on the CPU.
-* ``data``: synthetic pairs per second, rendered (one core, worker processes) and from the cache.
+* ``data``: synthetic pairs per second, rendered (one core, worker processes) and from the cache; DeMoN's
+  HDF5 files decoded on the training path per loader worker count, at 256x192 and batch 32.
 * ``train``: training steps/s per stage at the cpu scale, FLOP/s against matmul, channels-last and
   torch.compile, inference pairs/s of the full chain, and the job's own loop (``python -m
   demon_lab`` training flow1 and dm1) against the bare step.
@@ -209,8 +210,94 @@ def bench_data(repeats: int) -> str:
         "|---|---:|---:|---:|---:|---:|",
         *[f"| {a} | {b} | {c} | {d} | {e} | {f} |" for a, b, c, d, e, f in rows],
         "",
+        *_demon_h5_section(repeats),
     ]
     return "\n".join(lines)
+
+
+def write_demon_layout_file(path: Path, scenes: int, size: tuple[int, int] = (192, 256), seed: int = 0) -> None:
+    """A DeMoN-layout HDF5 file (WebP images, LZ4 float16 depth; ``write_demon_h5``) of ``scenes``
+    rendered synthetic pairs at ``size``: what DeMoN's training files hold, with content that
+    compresses like photographs rather than like noise."""
+    from demon_lab.data import synthetic
+    from demon_lab.data.readers.demon_h5 import write_demon_h5
+
+    height, width = size
+    fx, fy, cx, cy = geo.DEMON_INTRINSICS
+    K = np.array([[fx * width, 0, cx * width], [0, fy * height, cy * height], [0, 0, 1.0]])
+    presets = sorted(synthetic.PRESETS)
+    out = []
+    for i in range(scenes):
+        s = synthetic.render_pair(presets[i % len(presets)], seed + i, size)
+        motion = np.asarray(s["motion"], dtype=np.float64)
+        R2 = geo.angle_axis_to_matrix(torch.as_tensor(motion[None, :3]))[0].numpy()
+        views = []
+        for image, inv, R, t in ((s["image1"], s["inv_depth"], np.eye(3), np.zeros(3)),
+                                 (s["image2"], s["inv_depth2"], R2, motion[3:])):
+            rgb = np.floor((np.asarray(image).transpose(1, 2, 0) + 0.5) * 255 + 0.5).clip(0, 255).astype(np.uint8)
+            inv = np.asarray(inv, dtype=np.float64).reshape(height, width)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                depth = np.where(np.isfinite(inv) & (inv > 1e-3), 1 / inv, 0.0)  # (float16 depth: <= 1000)
+            views.append({"image": rgb, "depth": depth, "K": K, "R": R, "t": t})
+        out.append({"name": f"scene{i:04d}", "views": views})
+    write_demon_h5(path, out)
+
+
+def demon_h5_rates(path: Path, workers: Sequence[int], batch_size: int = 32, batches: int = 8,
+                   size: tuple[int, int] = (192, 256), pin_memory: bool = False) -> dict[int, float]:
+    """Samples per second that the training path of DeMoN's files serves (``DemonH5Dataset``:
+    decode WebP and LZ4, resize, DeMoN's augmentation, collate) through a DataLoader with each
+    number of ``workers`` (0: the main process), after one warm-up batch. Keys are training draws
+    ``(index, draw)``, as the job's sampler deals them."""
+    from torch.utils.data import DataLoader
+
+    from demon_lab.data.datasets import DemonH5Dataset
+
+    dataset = DemonH5Dataset(path, test_phase=False, size=size, augment=True, seed=0)
+    rng = np.random.default_rng(0)
+    rates = {}
+    for w in workers:
+        indices = rng.integers(0, len(dataset), batch_size * (batches + 1))
+        sampler = [(int(i), draw) for draw, i in enumerate(indices)]
+        loader = DataLoader(dataset, batch_size=batch_size, sampler=sampler, num_workers=w, pin_memory=pin_memory)
+        it = iter(loader)
+        next(it)  # warm-up: workers started, the file opened in each
+        start = time.perf_counter()
+        n = sum(next(it)["image1"].shape[0] for _ in range(batches))
+        rates[w] = n / (time.perf_counter() - start)
+        del it, loader
+    return rates
+
+
+def worker_counts() -> list[int]:
+    """0 (the main process), then 1, 2, 4, ... up to this machine's cores."""
+    cores = os.cpu_count() or 1
+    return [0] + [w for w in (1, 2, 4, 8, 16, 32) if w <= cores]
+
+
+def _demon_h5_section(repeats: int) -> list[str]:
+    import tempfile
+
+    size, batch = (192, 256), 32
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "demon_layout.h5"
+        write_demon_layout_file(path, 24, size)
+        mib = path.stat().st_size / 2**20
+        rates = demon_h5_rates(path, worker_counts(), batch, batches=max(2, repeats // 4), size=size)
+    rows = [f"| {w} | {r:.0f} | {r / batch:.2f} | {r / batch / 4:.2f} |" for w, r in rates.items()]
+    return [
+        f"DeMoN's HDF5 files, the training path (`DemonH5Dataset`, train phase: WebP and LZ4 decoded, "
+        f"resized to {size[1]}x{size[0]}, DeMoN's augmentation, batches of {batch} collated) through a DataLoader, "
+        f"from a {mib:.1f} MiB DeMoN-layout file of 24 rendered scenes (written by `write_demon_h5`; it sits in the "
+        "page cache, as a file read over and over does). The last column is the training step rate at batch "
+        f"{batch} these loaders keep fed with 4x headroom (the paper-scale goal; the step rates on a GPU are in "
+        "reports/device_check.md).",
+        "",
+        "| loader workers | samples/s | batches/s | steps/s fed with 4x headroom |",
+        "|---:|---:|---:|---:|",
+        *rows,
+        "",
+    ]
 
 
 def _matmul_flops(repeats: int) -> float:

@@ -4,7 +4,10 @@ from __future__ import annotations
 
 import re
 
+import torch
+
 from demon_lab import bench
+from demon_lab import geometry as geo
 
 
 def test_write_section_replaces_only_its_own_section(tmp_path):
@@ -33,3 +36,18 @@ def test_job_rates_reads_each_stage_rate_from_the_job_it_runs():
                "scale.steps.flow1=12", "scale.steps.dm1=6")
     rates = bench.job_rates(command, ("flow1", "dm1"))
     assert set(rates) == {"flow1", "dm1"} and all(r > 0 for r in rates.values())
+
+
+def test_demon_h5_rates_serve_training_draws_per_worker_count(tmp_path):
+    from demon_lab.data.datasets import DemonH5Dataset
+
+    path = tmp_path / "layout.h5"
+    bench.write_demon_layout_file(path, 3, (64, 96))
+    ds = DemonH5Dataset(path, test_phase=False, size=(64, 96))
+    assert len(ds) == 6  # 3 scenes, both orders of their pair
+    sample = ds.load(0)
+    assert sample["image1"].shape == (3, 64, 96) and torch.isfinite(sample["motion"]).all()
+    assert float(geo.valid_depth(sample["inv_depth"]).float().mean()) > 0.5
+    rates = bench.demon_h5_rates(path, [0, 1], batch_size=2, batches=2, size=(64, 96))
+    assert set(rates) == {0, 1} and all(r > 0 for r in rates.values())
+    assert bench.worker_counts()[0] == 0

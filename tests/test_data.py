@@ -756,3 +756,29 @@ def test_training_draws_carry_what_training_reads_bit_for_bit(rendered):
                for k in draw if isinstance(draw[k], torch.Tensor))
     plain = SyntheticDataset("synthetic_sun3d", split="train", length=2, size=(64, 64), augment=False, cache_dir=False)
     assert set(plain[0, 3]) == set(TRAINING_KEYS)  # the same keys whatever a source's augmentation: batches collate
+
+
+def test_a_training_draw_of_demon_h5_skips_the_derived_maps_and_keeps_every_value(tmp_path):
+    """A training draw loads without flow, normals and masks (half its time) and gives, field for
+    field and bit for bit, what the full sample gives after its draw drops them; also when the
+    pair is resampled to another size."""
+    from demon_lab.bench import write_demon_layout_file
+    from demon_lab.data.datasets import TRAINING_KEYS
+
+    path = tmp_path / "layout.h5"
+    write_demon_layout_file(path, 2, (96, 128))
+    for size in ((96, 128), (64, 96)):
+        ds = DemonH5Dataset(path, test_phase=False, size=size, augment=True, seed=3)
+        assert not {"flow", "normals", "valid", "visible"} & set(ds.load_training(0))
+        for index, draw in [(0, 0), (1, 5), (2, 7)]:
+            got = ds[(index, draw)]
+            full = ds._prepare(ds.load(index), ds.size)
+            assert {"flow", "normals", "visible"} <= set(full)
+            expected = smp.augment({k: v for k, v in full.items() if k in TRAINING_KEYS},
+                                   np.random.default_rng([3, draw]), normals=False)
+            assert set(got) == set(expected)
+            for key, value in expected.items():
+                if isinstance(value, torch.Tensor):
+                    torch.testing.assert_close(got[key], value, rtol=0, atol=0, equal_nan=True)
+                else:
+                    assert got[key] == value

@@ -97,14 +97,19 @@ class PairDataset(torch.utils.data.Dataset):
         """The raw sample at its native resolution."""
         raise NotImplementedError
 
+    def load_training(self, index: int) -> smp.Sample:
+        """The raw sample for a training draw: as :meth:`load`, or without the fields a draw drops
+        (flow, normals, masks) where a source can skip computing them."""
+        return self.load(index)
+
     def __getitem__(self, key: int | tuple[int, int]) -> smp.Sample:
         index, draw = (key, None) if isinstance(key, int | np.integer) else key
         if not 0 <= index < len(self):
             raise IndexError(f"{self.name}: index {index} out of range 0..{len(self) - 1}")
-        native = self.load(int(index))
+        native = self.load(int(index)) if draw is None else self.load_training(int(index))
         native.pop("meta", None)
         unknown_motion = native.pop("motion_unknown", False)
-        sample = self._prepare(native, self.size)
+        sample = self._prepare(native, self.size, derived=draw is None)
         if self.gt_size is not None:
             truth = sample if self.gt_size == tuple(sample["image1"].shape[1:]) else self._prepare(native, self.gt_size)
             sample.update(gt_inv_depth=truth["inv_depth"], gt_flow=truth["flow"], gt_intrinsics=truth["intrinsics"])
@@ -120,12 +125,12 @@ class PairDataset(torch.utils.data.Dataset):
                     sample[key] = torch.full_like(sample[key], math.nan)
         return sample
 
-    def _prepare(self, sample: smp.Sample, size: tuple[int, int] | None) -> smp.Sample:
+    def _prepare(self, sample: smp.Sample, size: tuple[int, int] | None, derived: bool = True) -> smp.Sample:
         target = smp.geo.DEMON_INTRINSICS if self.fixed_intrinsics else None
         if size is None and target is not None:  # the native resolution, cropped to DeMoN's intrinsics
             size = tuple(sample["image1"].shape[1:])
         if size is not None and (tuple(sample["image1"].shape[1:]) != size or target):
-            sample = smp.resample(sample, size, target)
+            sample = smp.resample(sample, size, target, derived=derived)
         if self.normalize_translation:
             sample = smp.normalize_translation(sample)
         return sample
@@ -265,11 +270,14 @@ class DemonH5Dataset(PairDataset):
     def __len__(self) -> int:
         return len(self.pairs)
 
-    def load(self, index: int) -> smp.Sample:
+    def load(self, index: int, derived: bool = True) -> smp.Sample:
         if self._file is None or self._pid != os.getpid():  # h5py handles do not survive fork
             self._file = demon_h5._open(self.path)
             self._pid = os.getpid()
-        return demon_h5.load_demon_h5_pair(self._file, self.path, *self.pairs[index])
+        return demon_h5.load_demon_h5_pair(self._file, self.path, *self.pairs[index], derived=derived)
+
+    def load_training(self, index: int) -> smp.Sample:
+        return self.load(index, derived=False)  # half of a draw's time went to flow, normals, visibility
 
     def __getstate__(self):
         state = dict(self.__dict__)

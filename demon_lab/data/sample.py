@@ -70,6 +70,7 @@ def make_sample(
     inv_depth2: Any | None = None,
     visible: Any | None = None,
     baseline: float | None = None,
+    derived: bool = True,
 ) -> Sample:
     """Validate the raw fields of a pair and derive flow, normals and masks.
 
@@ -83,6 +84,8 @@ def make_sample(
         visible: optional (H, W) bool visibility of view-1 pixels in view 2 (exact, e.g. from a
             renderer); by default it is computed geometrically (see the module docstring).
         baseline: |t| before normalisation (default: |t|).
+        derived: add flow, normals, valid and visible (:func:`derive`); False leaves them out (a
+            training draw reads none of them: its loss derives its targets from depth and motion).
 
     Raises:
         DataError: wrong shapes, non-finite motion or intrinsics, or no valid depth at all.
@@ -113,7 +116,7 @@ def make_sample(
     if visible is not None:
         vis = torch.as_tensor(np.asarray(visible), dtype=torch.bool).reshape(1, height, width)
         sample["visible"] = vis & valid
-    return derive(sample)
+    return derive(sample) if derived else sample
 
 
 def derive(sample: Sample) -> Sample:
@@ -200,6 +203,7 @@ def resample(
     sample: Sample,
     size: tuple[int, int],
     intrinsics: Sequence[float] | None = None,
+    derived: bool = True,
 ) -> Sample:
     """Change the resolution to ``size = (H, W)`` and, optionally, the intrinsics of both views.
 
@@ -208,7 +212,8 @@ def resample(
     e.g. :data:`demon_lab.geometry.DEMON_INTRINSICS`) each view is resampled through the exact
     affine map between its own pinhole camera and the target one (a crop plus a scale), so the
     result is the image that camera would have seen; pixels with no source become mid grey
-    (images) and invalid (depth). Flow and normals are recomputed from depth and motion.
+    (images) and invalid (depth). Flow and normals are recomputed from depth and motion
+    (``derived=False``: left out, and ``visible`` resampled only if the sample has it).
     """
     height, width = size
     out = dict(sample)
@@ -219,13 +224,15 @@ def resample(
         out[image_key] = _resample_map(sample[image_key], k_in, k_out, size, "image")
         out[depth_key] = _resample_map(sample[depth_key], k_in, k_out, size, "depth")
         out[k_key] = torch.tensor(k_out, dtype=torch.float32)
-    visible = _resample_map(sample["visible"].float(), sample["intrinsics"].double().numpy(),
-                            out["intrinsics"].double().numpy(), size, "depth")
-    out["visible"] = (visible > 0.5) & geo.valid_depth(out["inv_depth"])
-    del out["flow"], out["normals"]
-    if not bool(out["visible"].any()) and not bool(geo.valid_depth(out["inv_depth"]).any()):
+    if "visible" in sample:
+        visible = _resample_map(sample["visible"].float(), sample["intrinsics"].double().numpy(),
+                                out["intrinsics"].double().numpy(), size, "depth")
+        out["visible"] = (visible > 0.5) & geo.valid_depth(out["inv_depth"])
+    for key in ("flow", "normals", "valid"):
+        out.pop(key, None)
+    if not bool(geo.valid_depth(out["inv_depth"]).any()):
         raise DataError(f"{sample['id']}: no valid depth left after resampling to {width}x{height}")
-    return derive(out)
+    return derive(out) if derived else out
 
 
 def _resample_map(x: torch.Tensor, k_in: np.ndarray, k_out: np.ndarray,

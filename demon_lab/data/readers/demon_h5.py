@@ -120,8 +120,9 @@ def _view(path: Path, group, name: str) -> tuple[np.ndarray, np.ndarray, np.ndar
     return rgb, depth, K, R, t
 
 
-def load_demon_h5_pair(f, path: Path, scene: str, a: int, b: int) -> Sample:
-    """The sample of pair (a, b) of ``scene`` from an open file ``f`` (native resolution)."""
+def load_demon_h5_pair(f, path: Path, scene: str, a: int, b: int, derived: bool = True) -> Sample:
+    """The sample of pair (a, b) of ``scene`` from an open file ``f`` (native resolution);
+    ``derived=False``: without flow, normals and masks (``make_sample``)."""
     views = []
     for k in (a, b):
         name = f"{scene}/frames/t0/v{k}"
@@ -141,7 +142,7 @@ def load_demon_h5_pair(f, path: Path, scene: str, a: int, b: int) -> Sample:
     sample = make_sample(
         f"{path.stem}/{scene}/frames/t0/v{a},v{b}", im1, im2,
         normalised_intrinsics(K1, width, height), inverse(d1), UNKNOWN_MOTION if motion is None else motion,
-        intrinsics2=normalised_intrinsics(K2, width, height), inv_depth2=inverse(d2),
+        intrinsics2=normalised_intrinsics(K2, width, height), inv_depth2=inverse(d2), derived=derived,
     )
     if motion is None:
         sample["motion_unknown"] = True  # the dataset reports NaN motion and flow (DeMoN's nyu2_test.h5)
