@@ -245,6 +245,14 @@ def part_steps(check: Check, dims: Dims, rates: dict[tuple, float]) -> None:
                 check.add("3 train steps", label, f"failed: {type(e).__name__}: {str(e).splitlines()[0][:160]}")
             if check.device.type == "cuda":
                 torch.cuda.empty_cache()
+    schedule = paper_schedule()
+    for precision, channels_last in (("32-true", False), ("bf16-mixed", True)):
+        got = {k: rates.get((k, precision, channels_last)) for k in STAGES}
+        if all(got.values()):
+            days = sum(schedule[k] / got[k] for k in STAGES) / 86400
+            check.add("3 full schedule", f"{precision}{', channels-last' if channels_last else ''}",
+                      f"{days:.1f} days", f"DeMoN's {sum(schedule.values()) / 1e6:.2f} M steps (conf/scale/paper.yaml) "
+                      "at these bare-step rates, one GPU; the job's loop is slower by part 5's ratio")
     if check.device.type == "cuda" and check.left() > 40:
         saved = torch.backends.cudnn.benchmark
         torch.backends.cudnn.benchmark = True
@@ -254,6 +262,15 @@ def part_steps(check: Check, dims: Dims, rates: dict[tuple, float]) -> None:
                       "the job trains with cudnn.benchmark off (deterministic kernels where they exist)")
         finally:
             torch.backends.cudnn.benchmark = saved
+
+
+def paper_schedule() -> dict[str, int]:
+    """The steps of each stage at scale=paper (conf/scale/paper.yaml)."""
+    import yaml
+
+    from demon_lab.resources import CONF
+
+    return {k: int(v) for k, v in yaml.safe_load((CONF / "scale" / "paper.yaml").read_text())["scale"]["steps"].items()}
 
 
 def part_data(check: Check, dims: Dims, rates: dict[tuple, float]) -> None:

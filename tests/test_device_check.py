@@ -33,8 +33,9 @@ def test_the_dry_run_exercises_every_part_and_writes_one_table(tmp_path):
     proc = _script("--dry-run", "--out", str(out))
     assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]
     rows = _rows(out.read_text())
-    assert {r[0] for r in rows} == set(PARTS)
+    assert {r[0] for r in rows} == {*PARTS, "3 full schedule"}
     assert not [r for r in rows if r[2].startswith(("failed", "skipped"))], rows
+    assert {r[1] for r in rows if r[0] == "3 full schedule"} == {"32-true", "bf16-mixed, channels-last"}
     results = {(r[0], r[1]): r[2] for r in rows}
     assert re.match(r"\d+ passed", results[("1 tests", "tests/test_devices.py -m 'not cuda' on cpu")])
     stages = {r[1].split(",")[0] for r in rows if r[0] == "3 train steps"}
