@@ -43,6 +43,10 @@ def _job_overrides(args: list[str]) -> list[list[str]]:
     return jobs[:MAX_CHECKED_JOBS]
 
 
+REMOTE_LAUNCHERS = ("slurm", "slurm_ddp")
+"""Launchers whose jobs run on other machines: their device-dependent checks run in the job."""
+
+
 def check(args: list[str]) -> str | None:
     """None if every job's config composes and validates, else the error line."""
     from hydra import compose, initialize_config_dir
@@ -64,7 +68,7 @@ def check(args: list[str]) -> str | None:
             try:
                 cfg = compose("config", overrides=overrides)
                 drop_missing_sources(cfg)
-                validate(cfg)
+                validate(cfg, here=launcher not in REMOTE_LAUNCHERS)
                 if multirun and launcher != "slurm_ddp" and world_size(cfg) > 1 and not processes_launched_outside():
                     # Lightning's launcher starts each extra process by re-running the command line:
                     # under -m that would re-run the whole sweep

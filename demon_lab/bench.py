@@ -247,8 +247,10 @@ def demon_h5_rates(path: Path, workers: Sequence[int], batch_size: int = 32, bat
                    size: tuple[int, int] = (192, 256), pin_memory: bool = False) -> dict[int, float]:
     """Samples per second that the training path of DeMoN's files serves (``DemonH5Dataset``:
     decode WebP and LZ4, resize, DeMoN's augmentation, collate) through a DataLoader with each
-    number of ``workers`` (0: the main process), after one warm-up batch. Keys are training draws
-    ``(index, draw)``, as the job's sampler deals them."""
+    number of ``workers`` (0: the main process), in the steady state: the first ``2 x workers + 1``
+    batches (the loader's prefetch, decoded while the workers start) are not timed, then at least
+    ``max(batches, 4 x workers)`` are. Keys are training draws ``(index, draw)``, as the job's sampler
+    deals them."""
     from torch.utils.data import DataLoader
 
     from demon_lab.data.datasets import DemonH5Dataset
@@ -257,13 +259,16 @@ def demon_h5_rates(path: Path, workers: Sequence[int], batch_size: int = 32, bat
     rng = np.random.default_rng(0)
     rates = {}
     for w in workers:
-        indices = rng.integers(0, len(dataset), batch_size * (batches + 1))
+        warm, timed = 2 * w + 1, max(batches, 4 * w)
+        indices = rng.integers(0, len(dataset), batch_size * (warm + timed))
         sampler = [(int(i), draw) for draw, i in enumerate(indices)]
-        loader = DataLoader(dataset, batch_size=batch_size, sampler=sampler, num_workers=w, pin_memory=pin_memory)
+        loader = DataLoader(dataset, batch_size=batch_size, sampler=sampler, num_workers=w, pin_memory=pin_memory,
+                            prefetch_factor=2 if w else None)
         it = iter(loader)
-        next(it)  # warm-up: workers started, the file opened in each
+        for _ in range(warm):  # workers started, the file opened in each, their prefetched batches drained
+            next(it)
         start = time.perf_counter()
-        n = sum(next(it)["image1"].shape[0] for _ in range(batches))
+        n = sum(next(it)["image1"].shape[0] for _ in range(timed))
         rates[w] = n / (time.perf_counter() - start)
         del it, loader
     return rates

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import contextlib
 import functools
+import logging
 import os
 import shutil
 from collections.abc import Callable, Iterator
@@ -36,6 +37,7 @@ _DTYPES = {"bf16-mixed": torch.bfloat16, "16-mixed": torch.float16}
 _AUTOCAST_DEVICES = ("cuda", "cpu")
 
 F = TypeVar("F", bound=Callable[..., Any])
+log = logging.getLogger(__name__)
 
 
 def normalize_precision(value: Any) -> str:
@@ -67,6 +69,16 @@ def _autocast_on(device_type: str) -> bool:
         return torch.is_autocast_cpu_enabled() if device_type == "cpu" else torch.is_autocast_enabled()
 
 
+def _has_half(x: Any) -> bool:
+    if isinstance(x, torch.Tensor):
+        return x.dtype in (torch.bfloat16, torch.float16)
+    if isinstance(x, dict):
+        return any(_has_half(v) for v in x.values())
+    if isinstance(x, list | tuple):
+        return any(_has_half(v) for v in x)
+    return False
+
+
 def _to_float32(x: Any) -> Any:
     if isinstance(x, torch.Tensor):
         return x.float() if x.dtype in (torch.bfloat16, torch.float16) else x
@@ -78,14 +90,18 @@ def _to_float32(x: Any) -> Any:
 
 
 def float32(fn: F) -> F:
-    """Run ``fn`` in float32 inside an autocast region: autocast off, half-precision tensor
-    arguments (also inside dicts, lists and tuples) cast to float32. Outside autocast it is ``fn``
-    itself, called as it is (the float32 path is unchanged to the last bit)."""
+    """Run ``fn`` in float32: autocast off, half-precision tensor arguments (also inside dicts,
+    lists and tuples; not inside other mappings or dataclasses) cast to float32, inside an autocast
+    region or not (an island called from another gets its half inputs cast too). Outside autocast,
+    with no half argument, it is ``fn`` itself, called as it is (the float32 path is unchanged to
+    the last bit)."""
 
     @functools.wraps(fn)
     def island(*args, **kwargs):
         active = [d for d in _AUTOCAST_DEVICES if _autocast_on(d)]
         if not active:
+            if _has_half(args) or _has_half(kwargs):
+                return fn(*_to_float32(args), **_to_float32(kwargs))
             return fn(*args, **kwargs)
         with contextlib.ExitStack() as stack:
             for device_type in active:
@@ -96,23 +112,34 @@ def float32(fn: F) -> F:
     return island  # type: ignore[return-value]
 
 
+def _mps_available() -> bool:
+    mps = getattr(torch.backends, "mps", None)
+    return mps is not None and mps.is_available()
+
+
 def resolve_accelerator(accelerator: str) -> str:
-    """The device type Lightning's ``accelerator`` setting trains on: ``cuda``, ``mps`` or ``cpu``."""
+    """The device type Lightning's ``accelerator`` setting trains on: ``cuda``, ``mps`` or ``cpu``
+    (``gpu``: CUDA, or Apple's MPS where that is the GPU there is; ``auto``: also the CPU)."""
     accelerator = str(accelerator)
-    if accelerator in ("gpu", "cuda"):
+    if accelerator == "cuda":
         return "cuda"
-    if accelerator == "auto":
+    if accelerator in ("gpu", "auto"):
         if torch.cuda.is_available():
             return "cuda"
-        mps = getattr(torch.backends, "mps", None)
-        return "mps" if mps is not None and mps.is_available() else "cpu"
+        if _mps_available():
+            return "mps"
+        return "cuda" if accelerator == "gpu" else "cpu"
     return accelerator
 
 
 def evaluation_device(cfg) -> torch.device:
     """Where a job evaluates the chain: the device type it trains on (``trainer.accelerator``),
-    this process's GPU (``LOCAL_RANK``) when that is CUDA."""
+    this process's GPU (``LOCAL_RANK``) when that is CUDA; the CPU, with a log line, when that
+    device is not here (every stage cached or ``train=false``: nothing trained on it)."""
     kind = resolve_accelerator(cfg.trainer.accelerator)
+    if (kind == "cuda" and not torch.cuda.is_available()) or (kind == "mps" and not _mps_available()):
+        log.info("trainer.accelerator=%s: no %s device here, evaluating on the CPU", cfg.trainer.accelerator, kind)
+        return torch.device("cpu")
     if kind == "cuda":
         local = os.environ.get("LOCAL_RANK", "0")
         return torch.device("cuda", int(local) if local.isdigit() else 0)
@@ -122,6 +149,9 @@ def evaluation_device(cfg) -> torch.device:
 def precision_problem(precision: Any, device_type: str) -> str | None:
     """Why ``precision`` cannot run on ``device_type`` (one line), or None."""
     name = normalize_precision(precision)
+    if name != "32-true" and device_type not in _AUTOCAST_DEVICES:
+        return (f"precision={name}: demon_lab's float32 islands cover CUDA and the CPU; this job runs on "
+                f"{device_type}: use precision=32 there")
     if name == "16-mixed" and device_type != "cuda":
         return (f"precision=16-mixed needs a CUDA device (float16 autocast with loss scaling); this job runs on "
                 f"{device_type}: use bf16-mixed or 32 there")
@@ -150,6 +180,11 @@ def compile_problem(device_type: str) -> str | None:
         if compiler is None or shutil.which(compiler) is None:
             return ("model.compile=true on the CPU needs a C++ compiler for torch.compile's kernels (none found: "
                     "install g++ or set CXX); leave model.compile=false")
+    elif device_type == "cuda":
+        compiler = os.environ.get("CC") or next((c for c in ("cc", "gcc", "clang") if shutil.which(c)), None)
+        if compiler is None or shutil.which(compiler) is None:
+            return ("model.compile=true on CUDA needs a C compiler for Triton's kernel launchers (none found: "
+                    "install gcc or set CC); leave model.compile=false")
     return None
 
 

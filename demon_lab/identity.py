@@ -105,9 +105,10 @@ def semantic_config(cfg) -> dict[str, Any]:
             node.pop(leaf, None)
     if isinstance(plain.get("model"), dict):
         plain["model"] = model_identity(plain["model"])
-    precision = plain.pop("precision", 32)
-    if normalize_precision(precision) != "32-true":  # the default is left out: keys from before it existed hold
-        plain["precision"] = normalize_precision(precision)
+    precision = normalize_precision(plain.pop("precision", 32))
+    # left out at its default (the keys from before it existed hold) and for the methods that run no net
+    if precision != "32-true" and plain.get("method", "demon") in ("demon", "base_mat_f"):
+        plain["precision"] = precision
     return _portable(plain)
 
 
@@ -125,8 +126,19 @@ def sweep_key(experiment: str, overrides: Iterable[str]) -> str:
     """A multirun's identity: its experiment, the command-line overrides that change results
     (so the same sweep re-issued with another thread count, store or launcher continues its parent
     run) and :func:`versions` (a version change starts a new parent)."""
-    changing = sorted(o for o in overrides if is_semantic(o))
+    changing = sorted(_normal_override(o) for o in overrides if is_semantic(o))
     return digest({"experiment": str(experiment), "overrides": changing, **versions()}, sort_keys=False)
+
+
+def _normal_override(override: str) -> str:
+    """``precision=bf16`` and ``precision=bf16-mixed`` are one override (one name, one key)."""
+    key, sep, value = override.partition("=")
+    if sep and key.lstrip("+~") == "precision":
+        try:
+            return f"{key}={normalize_precision(value)}"
+        except ValueError:
+            return override
+    return override
 
 
 def data_key(description: Mapping[str, Any]) -> str:

@@ -157,9 +157,10 @@ def _baseline(node: DictConfig) -> None:
         raise ConfigError(f"baseline.sweep_window: expected an odd integer, got {window}")
 
 
-def _execution(cfg: DictConfig) -> None:
-    """``precision``, ``model.channels_last`` and ``model.compile``: known values, and ones this
-    platform can run on the device the job trains on (one line where it cannot)."""
+def _execution(cfg: DictConfig, here: bool = True) -> None:
+    """``precision``, ``model.channels_last`` and ``model.compile``: known values, and, when the job
+    runs ``here``, ones this platform can run on the device the job trains on (one line where it
+    cannot; a job a cluster launcher sends elsewhere is checked there, by the job itself)."""
     from demon_lab import execution
 
     try:
@@ -169,7 +170,7 @@ def _execution(cfg: DictConfig) -> None:
     for key in ("channels_last", "compile"):
         if not isinstance(cfg.model.get(key, False), bool):
             raise ConfigError(f"model.{key}: expected true or false, got {cfg.model[key]!r}")
-    if cfg.method not in CHAIN_METHODS:
+    if cfg.method not in CHAIN_METHODS or not here:
         return
     device = execution.resolve_accelerator(cfg.trainer.accelerator)
     problem = execution.precision_problem(cfg.get("precision", 32), device)
@@ -179,7 +180,10 @@ def _execution(cfg: DictConfig) -> None:
         raise ConfigError(problem)
 
 
-def validate(cfg: DictConfig) -> None:
+def validate(cfg: DictConfig, here: bool = True) -> None:
+    """Check every key the job reads (one ConfigError line). ``here=False``: the job will run on
+    another machine (a cluster launcher), so what depends on this machine's devices is left to the
+    job's own check there."""
     try:
         OmegaConf.to_container(cfg, resolve=True, throw_on_missing=True)
     except Exception as e:
@@ -262,7 +266,7 @@ def validate(cfg: DictConfig) -> None:
     _choice("trainer.accelerator", cfg.trainer.accelerator, ("auto", "cpu", "gpu", "cuda", "mps"))
     _int("trainer.devices", cfg.trainer.devices, 1)
     _int("trainer.num_nodes", cfg.trainer.num_nodes, 1)
-    _execution(cfg)
+    _execution(cfg, here)
     world = cfg.trainer.devices * cfg.trainer.num_nodes
     for name in stages:
         batch = cfg.schedule.stages[name].get("batch_size") or cfg.data.batch_size

@@ -770,6 +770,12 @@ def test_a_training_draw_of_demon_h5_skips_the_derived_maps_and_keeps_every_valu
     for size in ((96, 128), (64, 96)):
         ds = DemonH5Dataset(path, test_phase=False, size=size, augment=True, seed=3)
         assert not {"flow", "normals", "valid", "visible"} & set(ds.load_training(0))
+        calls = []
+        ds.load_training = lambda index, ds=ds, calls=calls: (calls.append(index)
+                                                              or DemonH5Dataset.load_training(ds, index))
+        ds[(1, 0)], ds[1]
+        assert calls == [1]  # a draw takes the short path, an evaluation sample does not
+        del ds.load_training
         for index, draw in [(0, 0), (1, 5), (2, 7)]:
             got = ds[(index, draw)]
             full = ds._prepare(ds.load(index), ds.size)

@@ -4,6 +4,7 @@ autocast, the keys, the one-line refusals, and the smoke pipeline in bf16-mixed 
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import pytest
@@ -16,7 +17,7 @@ from demon_lab import execution, losses
 from demon_lab import geometry as geo
 from demon_lab.config import ConfigError
 from demon_lab.identity import run_key
-from demon_lab.nets.chain import DeMoN, depth_motion_net_inputs, flow_net_inputs
+from demon_lab.nets.chain import DeMoN, depth_motion_net_inputs, flow_net_inputs, ground_truth_inputs
 from demon_lab.stages.schedule import stage_dirs
 from demon_lab.validate import validate
 
@@ -32,26 +33,60 @@ def test_precision_names_are_lightnings():
 
 
 def _scene_inputs():
-    inv, motion, K = random_scene(2, 24, 32, dtype=torch.float32, seed=7)
+    inv, motion, K = random_scene(2, 64, 64, dtype=torch.float32, seed=7)
     flow = geo.flow_from_depth_motion(inv, motion, K)
-    image = torch.rand(2, 3, 24, 32, generator=torch.Generator().manual_seed(7))
-    pred = 1 / (1.5 + 4 * torch.rand(2, 1, 24, 32, generator=torch.Generator().manual_seed(8)))
+    image = torch.rand(2, 3, 64, 64, generator=torch.Generator().manual_seed(7))
+    pred = 1 / (1.5 + 4 * torch.rand(2, 1, 64, 64, generator=torch.Generator().manual_seed(8)))
     return inv, motion, K, flow, image, pred
 
 
+def _loss_targets(inv, m, K):
+    return losses.ground_truth({"inv_depth": inv, "motion": m, "intrinsics": K})
+
+
+W = {k: 1.0 for k in losses.WEIGHT_KEYS}
 ISLANDS = {
     "flow_from_depth_motion": lambda inv, m, K, f, im, p: geo.flow_from_depth_motion(inv, m, K),
     "depth_from_flow_motion": lambda inv, m, K, f, im, p: geo.depth_from_flow_motion(f, m, K),
     "normals_from_depth": lambda inv, m, K, f, im, p: geo.normals_from_depth(inv, K),
     "angle_axis_to_matrix": lambda inv, m, K, f, im, p: geo.angle_axis_to_matrix(m[:, :3]),
     "matrix_to_angle_axis": lambda inv, m, K, f, im, p: geo.matrix_to_angle_axis(geo.angle_axis_to_matrix(m[:, :3])),
+    "matrix_to_quaternion": lambda inv, m, K, f, im, p: geo.matrix_to_quaternion(geo.angle_axis_to_matrix(m[:, :3])),
+    "reproject": lambda inv, m, K, f, im, p: geo.reproject(inv, m, K),
+    "triangulation_angle": lambda inv, m, K, f, im, p: geo.triangulation_angle(inv, m, K),
+    "visibility_mask": lambda inv, m, K, f, im, p: geo.visibility_mask(inv, m, K),
     "warp_image": lambda inv, m, K, f, im, p: geo.warp_image(im, torch.nan_to_num(f)),
+    "warp2d": lambda inv, m, K, f, im, p: geo.warp2d(im, torch.nan_to_num(f)),
     "scale_invariant_gradients": lambda inv, m, K, f, im, p: geo.scale_invariant_gradients(p),
+    "median_downsample": lambda inv, m, K, f, im, p: geo.median_downsample(p),
+    "inverse_depth_pyramid": lambda inv, m, K, f, im, p: geo.inverse_depth_pyramid(p, levels=3),
     "sig_loss": lambda inv, m, K, f, im, p: losses.sig_loss(p, inv),
+    # (the predictions: slices and flips of the inputs, exact in any precision; the targets from the
+    # float32 batch, as training computes them)
+    "flow_loss": lambda inv, m, K, f, im, p: losses.flow_loss(
+        torch.cat([f.flip(1), im[:, :2]], 1)[:, :, ::32, ::32], torch.cat([f.flip(1), im[:, :2]], 1)[:, :, ::4, ::4],
+        _loss_targets(inv.float(), m.float(), K.float()), W, ramp=1.0, level5=0.5),
+    "depth_motion_loss": lambda inv, m, K, f, im, p: losses.depth_motion_loss(
+        p[:, :, ::4, ::4], im[:, :, ::4, ::4], m.flip(1), _loss_targets(inv.float(), m.float(), K.float()), W,
+        ramp=1.0),
+    "refine_loss": lambda inv, m, K, f, im, p: losses.refine_loss(p, _loss_targets(inv.float(), m.float(), K.float()),
+                                                                  W, ramp=1.0),
+    "ground_truth_inputs": lambda inv, m, K, f, im, p: ground_truth_inputs({"inv_depth": inv, "motion": m}, K),
     "flow_net_inputs": lambda inv, m, K, f, im, p: flow_net_inputs(im, p, geo.normals_from_depth(p, K), m, K),
     "depth_motion_net_inputs": lambda inv, m, K, f, im, p: depth_motion_net_inputs(im, torch.nan_to_num(f),
                                                                                   torch.ones_like(f), m, K),
 }
+
+
+def _tensors(x) -> list[torch.Tensor]:
+    """Every tensor in a result (a tensor, a tuple or list, a dict, a dataclass)."""
+    if isinstance(x, torch.Tensor):
+        return [x]
+    if dataclasses.is_dataclass(x):
+        return _tensors([getattr(x, f.name) for f in dataclasses.fields(x)])
+    if isinstance(x, dict):
+        return _tensors(list(x.values()))
+    return [t for v in x for t in _tensors(v)]
 
 
 @pytest.mark.parametrize("name", sorted(ISLANDS))
@@ -61,11 +96,39 @@ def test_a_float32_island_computes_the_float32_result_inside_autocast(name):
     fn = ISLANDS[name]
     inputs = _scene_inputs()
     half = [x.bfloat16() for x in inputs]
-    expected = fn(*[x.float() for x in half])
+    expected = _tensors(fn(*[x.float() for x in half]))
     with torch.autocast("cpu", dtype=torch.bfloat16):
-        got = fn(*half)
+        got = _tensors(fn(*half))
+    assert len(got) == len(expected) > 0
+    for g, e in zip(got, expected):
+        assert g.dtype == (torch.float32 if e.is_floating_point() else e.dtype)
+        torch.testing.assert_close(g, e, rtol=0, atol=0, equal_nan=True)
+
+
+def test_an_island_casts_half_inputs_outside_autocast_too():
+    """An island called from another (where autocast is already off) still computes in float32."""
+    *_, pred = _scene_inputs()
+    half = pred.bfloat16()
+    got = geo.scale_invariant_gradients(half)
     assert got.dtype == torch.float32
-    torch.testing.assert_close(got, expected, rtol=0, atol=0, equal_nan=True)
+    torch.testing.assert_close(got, geo.scale_invariant_gradients(half.float()), rtol=0, atol=0, equal_nan=True)
+    assert geo.scale_invariant_gradients.__wrapped__(half).dtype == torch.bfloat16  # without the island
+
+
+def test_every_geometry_layer_and_loss_is_an_island():
+    """A new public geometry function or loss gets the float32 island too (or a reason here)."""
+    import inspect
+
+    not_islands = {"valid_depth": "a comparison: exact in any precision"}
+    for module, names in ((geo, None), (losses, ("sig_loss", "flow_loss", "depth_motion_loss", "refine_loss",
+                                                  "pointwise_l2", "vector_loss", "confidence_target"))):
+        for name, fn in inspect.getmembers(module, inspect.isfunction):
+            if fn.__module__ != module.__name__ or name.startswith("_") or name in not_islands:
+                continue
+            if names is None or name in names:
+                assert getattr(fn, "float32_island", False), f"{module.__name__}.{name} is not a float32 island"
+    assert all(getattr(f, "float32_island", False) for f in (ground_truth_inputs, flow_net_inputs,
+                                                            depth_motion_net_inputs))
 
 
 def test_without_the_island_autocast_changes_the_geometry():
@@ -170,7 +233,9 @@ def test_bf16_mixed_with_channels_last_runs_the_smoke_pipeline_into_mlflow_withi
         assert all(math.isfinite(m.value) for m in history)
         return min(history, key=lambda m: m.step).value
 
-    assert first_loss(tmp_path / "bf16", mixed) == pytest.approx(first_loss(tmp_path / "fp32", fp32), rel=0.02)
+    loss_mixed, loss_fp32 = first_loss(tmp_path / "bf16", mixed), first_loss(tmp_path / "fp32", fp32)
+    assert loss_mixed != loss_fp32  # the job did train in bf16 (same weights, same batch: only the rounding differs)
+    assert loss_mixed == pytest.approx(loss_fp32, rel=0.02)
     for name, summary in fp32["summary"].items():
         got = mixed["summary"][name]
         assert got["epe"] == pytest.approx(summary["epe"], rel=0.02), name
@@ -209,3 +274,72 @@ def test_compile_trains_a_smoke_stage_or_is_refused_in_one_line(tmp_path):
     plain.flow1.load_state_dict(stages[0].load()["flow1"])
     for (k, a), (k2, b) in zip(plain.flow1.state_dict().items(), chain.flow1.state_dict().items()):
         assert k == k2 and torch.equal(a, b)
+
+
+def test_evaluation_runs_the_nets_in_the_precision_asked_for():
+    from demon_lab.data.datasets import SyntheticDataset
+    from demon_lab.evaluate import evaluate_dataset
+
+    torch.manual_seed(3)
+    chain = DeMoN("v1", 0.125, (64, 64)).eval()
+    dataset = SyntheticDataset("synthetic_sun3d", "test", length=2, size=(64, 64))
+    fp32, _ = evaluate_dataset(chain, dataset, iterations=0, batch_size=2)
+    again, _ = evaluate_dataset(chain, dataset, iterations=0, batch_size=2, precision="32")
+    bf16, _ = evaluate_dataset(chain, dataset, iterations=0, batch_size=2, precision="bf16-mixed",
+                               channels_last=True)
+    assert [r["epe"] for r in again] == [r["epe"] for r in fp32]
+    assert [r["epe"] for r in bf16] != [r["epe"] for r in fp32]  # the nets did run in bf16
+    for a, b in zip(fp32, bf16):
+        assert b["epe"] == pytest.approx(a["epe"], rel=0.02) and b["l1_inv"] == pytest.approx(a["l1_inv"], rel=0.05)
+
+
+def test_the_evaluation_device_follows_the_training_accelerator(tmp_path, caplog):
+    cfg = compose_config(smoke_overrides(tmp_path, "trainer.accelerator=cpu"))
+    assert execution.evaluation_device(cfg) == torch.device("cpu")
+    here = "cuda" if torch.cuda.is_available() else ("mps" if execution._mps_available() else "cpu")
+    assert execution.resolve_accelerator("auto") == here
+    assert execution.resolve_accelerator("cuda") == "cuda" and execution.resolve_accelerator("cpu") == "cpu"
+    if not torch.cuda.is_available():
+        cfg = compose_config(smoke_overrides(tmp_path, "trainer.accelerator=cuda"))
+        with caplog.at_level("INFO", logger="demon_lab.execution"):
+            assert execution.evaluation_device(cfg) == torch.device("cpu")
+        assert "no cuda device here, evaluating on the CPU" in caplog.text
+
+
+GOLDEN = {  # the keys these configurations had before precision, channels-last and compile existed
+    (): ("2907aa5b1f5f6ccc", ["3dd138c21ef927e2", "1fca1025f3da4572", "54995bd435165a57", "ad9248f256cc5ae1",
+                              "0f277acf9143285f", "11d045c2fab422bf"]),
+    ("scale=paper",): ("b01069ad9b5a53e9", ["2dc7c6d575068f58", "eab06ec47ffda056", "fcff31279bd656ec",
+                                            "bce9080cff5cd55a", "ad5b1a5caad91d32", "a301ba0f14d4e8c8"]),
+}
+
+
+@pytest.mark.parametrize("overrides", list(GOLDEN))
+def test_float32_jobs_keep_the_keys_they_had(overrides):
+    cfg = compose_config(["cache_dir=/x", "tracking.uri=sqlite:////x/m.db", *overrides])
+    assert _keys(cfg) == (GOLDEN[overrides][0], GOLDEN[overrides][1])
+    layout = compose_config(["cache_dir=/x", "tracking.uri=sqlite:////x/m.db", *overrides, "precision=32-true",
+                             "model.channels_last=true", "model.compile=true"])
+    assert _keys(layout) == _keys(cfg)
+
+
+def test_precision_keys_only_what_runs_a_net(tmp_path):
+    from demon_lab.identity import sweep_key
+
+    base = smoke_overrides(tmp_path, "method=base_ff")
+    assert run_key(compose_config(base)) == run_key(compose_config([*base, "precision=bf16-mixed"]))
+    frozen = smoke_overrides(tmp_path, "scale.steps.flow1=0")
+    plain, bf16 = (stage_dirs(compose_config(frozen + extra)) for extra in ([], ["precision=bf16-mixed"]))
+    assert plain[0].key == bf16[0].key and plain[1].key != bf16[1].key  # flow1 trains nothing in bf16
+    assert sweep_key("e", ["precision=bf16"]) == sweep_key("e", ["precision=bf16-mixed"]) \
+        != sweep_key("e", ["precision=32"])
+
+
+def test_a_cluster_launch_leaves_the_device_checks_to_the_job(tmp_path):
+    from demon_lab.__main__ import check
+
+    args = smoke_overrides(tmp_path, "precision=16-mixed", "trainer.accelerator=cpu")
+    assert "precision=16-mixed needs a CUDA device" in check(args)
+    assert check(["-m", *args, "hydra/launcher=slurm"]) is None  # checked by the job, where it runs
+    with pytest.raises(ConfigError, match="needs a CUDA device"):
+        validate(compose_config(args))

@@ -110,7 +110,7 @@ class PairDataset(torch.utils.data.Dataset):
         native.pop("meta", None)
         unknown_motion = native.pop("motion_unknown", False)
         sample = self._prepare(native, self.size, derived=draw is None)
-        if self.gt_size is not None:
+        if self.gt_size is not None and draw is None:  # (an evaluation's ground truth; a draw drops it)
             truth = sample if self.gt_size == tuple(sample["image1"].shape[1:]) else self._prepare(native, self.gt_size)
             sample.update(gt_inv_depth=truth["inv_depth"], gt_flow=truth["flow"], gt_intrinsics=truth["intrinsics"])
         if draw is not None:  # a training draw: only what the stages and losses read (they derive

@@ -48,9 +48,10 @@ def describe_stage(cfg: DictConfig, name: str, upstream: dict[str, str]) -> dict
         "train_data": plain(cfg.data.train),
         "seed": cfg.seed,
         "upstream": dict(upstream),
-        # the nets' precision when it is not float32 (left out at 32: the keys from before it existed hold)
+        # the nets' precision when it is not float32 and the stage trains (left out at 32: the keys from
+        # before it existed hold)
         **({"precision": precision} if (precision := normalize_precision(cfg.get("precision", 32))) != "32-true"
-           else {}),
+           and int(spec.steps) > 0 else {}),
     }
 
 
