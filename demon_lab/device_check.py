@@ -6,17 +6,20 @@ listed as skipped, one that fails is listed with its error, and the check goes o
 
 1. the device-parametrised tests on CUDA (``pytest -m cuda``: geometry, nets, losses with their
    gradients, metrics and a mixed-precision training step, each against a float64 CPU reference);
-2. full-chain inference pairs/s at 256x192 (bootstrap + 3 iterations + refinement);
+2. full-chain inference pairs/s at 256x192 (bootstrap + 3 iterations + refinement), batch 1 and
+   32, in float32 and in bf16-mixed with channels-last;
 3. training steps/s of every stage at ``scale=paper`` (256x192, full width, batch 32; iterative:
    8 new + 24 queued) in float32 and bf16-mixed + channels-last, flow1 and dm1 also in float32 +
    channels-last and plain bf16-mixed, and the peak GPU memory of each (the bare step: forward in
-   the precision's autocast region, backward, Adam), and flow1 with cudnn.benchmark on;
-4. DeMoN's HDF5 training path per loader worker count against 4x the fastest step of part 3;
+   the precision's autocast region with the sig terms on, backward, Adam), flow1 with
+   cudnn.benchmark on, and DeMoN's full schedule at those rates;
+4. DeMoN's HDF5 training path per loader worker count (past the loader's prefetch) against 4x the
+   fastest step of part 3;
 5. the job's own loop at ``scale=paper`` (flow1, 150 steps through Lightning with the profile's 8
    loader workers, bf16-mixed, channels-last) against its bare step;
 6. the ``cpu`` profile's six stages trained on the GPU (the default job's schedule), per stage;
-7. torch.compile (``model.compile``) of flow1 and dm1 in bf16-mixed with channels-last: compile
-   time and steps/s.
+7. torch.compile (``model.compile``) of flow1 and dm1 in bf16-mixed with channels-last, each in a
+   subprocess the budget stops (dm1 only if time is left): compile time and steps/s.
 
 Parts 5 and 6 compose the job's config and so need Hydra and OmegaConf (on a GPU host without
 demon_lab's environment, ``scripts/device_check.sh`` installs their wheels from ``.whl/``:
