@@ -212,9 +212,10 @@ def test_bf16_mixed_with_channels_last_runs_the_smoke_pipeline_into_mlflow_withi
     """The same smoke job (flow1 and dm1, the bootstrap pass evaluated) in float32 and in bf16-mixed
     with channels-last, from the same seed. Tolerances: the first step's loss (same weights, same
     batch: the forward pass's rounding only) within 2 %; after training, flow EPE within 2 %, L1 of
-    the inverse depth and the rotation error within 5 % of float32 on every test set (measured: 0.2 %,
-    2 % and 1 %). The translation direction and sc-inv of this barely trained chain are
-    ill-conditioned (a translation of norm ~1e-3; an almost constant depth): checked finite only."""
+    the inverse depth and the rotation error within 5 % of float32 on every test set (measured: 0.02 %;
+    0.14 %, 1.57 % and 0.73 %; ``-s`` prints them). The translation direction and sc-inv of this
+    barely trained chain are ill-conditioned (a translation of norm ~1e-3; an almost constant depth):
+    checked finite only."""
     fp32 = _job(tmp_path / "fp32")
     mixed = _job(tmp_path / "bf16", "precision=bf16-mixed", "model.channels_last=true")
     assert fp32["status"] == mixed["status"] == "finished"
@@ -236,6 +237,10 @@ def test_bf16_mixed_with_channels_last_runs_the_smoke_pipeline_into_mlflow_withi
     loss_mixed, loss_fp32 = first_loss(tmp_path / "bf16", mixed), first_loss(tmp_path / "fp32", fp32)
     assert loss_mixed != loss_fp32  # the job did train in bf16 (same weights, same batch: only the rounding differs)
     assert loss_mixed == pytest.approx(loss_fp32, rel=0.02)
+    worst = {k: max(abs(mixed["summary"][n][k] / s[k] - 1) for n, s in fp32["summary"].items())
+             for k in ("epe", "l1_inv", "rot_deg")}
+    print(f"bf16-mixed against float32: first step's loss {abs(loss_mixed / loss_fp32 - 1):.2%}; over the test "
+          "sets at most " + ", ".join(f"{k} {v:.2%}" for k, v in worst.items()))  # (pytest -s shows it)
     for name, summary in fp32["summary"].items():
         got = mixed["summary"][name]
         assert got["epe"] == pytest.approx(summary["epe"], rel=0.02), name
