@@ -274,6 +274,22 @@ def demon_h5_rates(path: Path, workers: Sequence[int], batch_size: int = 32, bat
     return rates
 
 
+def demon_h5_pair_ms(path: Path, pairs: int = 48, size: tuple[int, int] = (192, 256)) -> tuple[float, float]:
+    """Milliseconds per pair on one core: a training draw (``(index, draw)``: decoded, augmented,
+    without the flow, normals and masks it drops) and an evaluation sample (``index``: all of them)."""
+    from demon_lab.data.datasets import DemonH5Dataset
+
+    dataset = DemonH5Dataset(path, test_phase=False, size=size, augment=True, seed=0)
+    dataset[(0, 0)]  # the file opened
+    times = []
+    for key in (lambda i: (i % len(dataset), i), lambda i: i % len(dataset)):
+        start = time.perf_counter()
+        for i in range(pairs):
+            dataset[key(i)]
+        times.append(1e3 * (time.perf_counter() - start) / pairs)
+    return times[0], times[1]
+
+
 def worker_counts() -> list[int]:
     """0 (the main process), then 1, 2, 4, ... up to this machine's cores."""
     cores = os.cpu_count() or 1
@@ -304,6 +320,7 @@ def _demon_h5_section(repeats: int) -> list[str]:
         mib = path.stat().st_size / 2**20
         rates = demon_h5_rates(path, worker_counts(), batch, batches=max(2, repeats // 4), size=size,
                                pin_memory=torch.cuda.is_available())
+        draw_ms, eval_ms = demon_h5_pair_ms(path, size=size)
     step, where = paper_step_rate()
     rows = [f"| {w} | {r:.0f} | {r / batch:.2f} | {r / batch / 4:.2f} | {'yes' if r / batch / 4 >= step else 'no'} |"
             for w, r in rates.items()]
@@ -313,7 +330,9 @@ def _demon_h5_section(repeats: int) -> list[str]:
         f"from a {mib:.1f} MiB DeMoN-layout file of 24 rendered scenes (written by `write_demon_h5`; it sits in the "
         "page cache, as a file read over and over does). The goal: decoding at least 4x the training step rate. "
         f"The step: `flow1`'s bare training step at scale=paper (256x192, full width, batch {batch}) on this "
-        f"machine ({where}), {step:.3f} steps/s; on a GPU, reports/device_check.md compares with every stage.",
+        f"machine ({where}), {step:.3f} steps/s; on a GPU, reports/device_check.md compares with every stage. "
+        f"One pair on one core: {draw_ms:.1f} ms as a training draw, {eval_ms:.1f} ms as an evaluation sample "
+        "(with the flow, normals and masks a draw does not compute).",
         "",
         "| loader workers | samples/s | batches/s | steps/s fed with 4x headroom | 4x the step |",
         "|---:|---:|---:|---:|:---:|",

@@ -51,3 +51,10 @@ def test_demon_h5_rates_serve_training_draws_per_worker_count(tmp_path):
     rates = bench.demon_h5_rates(path, [0, 1], batch_size=2, batches=2, size=(64, 96))
     assert set(rates) == {0, 1} and all(r > 0 for r in rates.values())
     assert bench.worker_counts()[0] == 0
+
+
+def test_demon_h5_pair_times_a_draw_and_an_evaluation_sample(tmp_path):
+    path = tmp_path / "layout.h5"
+    bench.write_demon_layout_file(path, 2, (64, 96))
+    draw, evaluation = bench.demon_h5_pair_ms(path, pairs=4, size=(64, 96))
+    assert draw > 0 and evaluation > 0
