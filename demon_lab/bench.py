@@ -362,9 +362,7 @@ def bench_train(repeats: int) -> str:
 
     warnings.filterwarnings("ignore")
     size, width, batch_size = (96, 128), 0.25, 8  # the cpu scale (conf/scale/cpu.yaml)
-    weights = {"flow": 500, "flow_conf": 25, "flow_sig": 250, "flow_conf_sig": 25, "depth": 150, "depth_sig": 375,
-               "normals": 25, "rotation": 160, "translation": 45, "refine_depth": 150, "refine_depth_sig": 187.5,
-               "refine_normals": 25}  # conf/loss/released_code.yaml
+    weights = losses.preset("released_code")
     samples = []
     for i in range(batch_size):
         s = normalize_translation(synthetic.render_pair("synthetic_sun3d", 10_000 + i, size))

@@ -95,17 +95,6 @@ class Check:
             torch.cuda.synchronize(self.device)
 
 
-def _weights() -> dict[str, float]:
-    """The released code's loss weights (conf/loss/released_code.yaml, the job's default)."""
-    import yaml
-
-    from demon_lab.losses import WEIGHT_KEYS
-    from demon_lab.resources import CONF
-
-    preset = yaml.safe_load((CONF / "loss" / "released_code.yaml").read_text())
-    return {k: float(preset[k]) for k in WEIGHT_KEYS}
-
-
 _SAMPLES: dict[tuple[int, int], list[dict]] = {}
 
 
@@ -127,9 +116,10 @@ def _batch(dims: Dims, n: int, device: torch.device) -> dict[str, torch.Tensor]:
 
 
 def _stage(kind: str, chain, dims: Dims):
+    from demon_lab.losses import preset
     from demon_lab.stages.modules import DepthMotionStage, FlowStage, IterativeStage, RefineStage
 
-    w = dict(weights=_weights(), steps=1000, lr=1e-4)
+    w = dict(weights=preset("released_code"), steps=1000, lr=1e-4)
     if kind in ("flow1", "flow2"):
         return FlowStage(chain, net=kind, **w)
     if kind in ("dm1", "dm2"):

@@ -99,9 +99,7 @@ def float32(fn: F) -> F:
     @functools.wraps(fn)
     def island(*args, **kwargs):
         active = [d for d in _AUTOCAST_DEVICES if _autocast_on(d)]
-        if not active:
-            if _has_half(args) or _has_half(kwargs):
-                return fn(*_to_float32(args), **_to_float32(kwargs))
+        if not active and not (_has_half(args) or _has_half(kwargs)):
             return fn(*args, **kwargs)
         with contextlib.ExitStack() as stack:
             for device_type in active:
@@ -175,20 +173,19 @@ def compile_problem(device_type: str) -> str | None:
                     f"(Python {sys.version.split()[0]}, {sys.platform}); leave model.compile=false")
     except Exception as e:  # an import failure is the same answer
         return f"model.compile=true: torch.compile is unavailable ({type(e).__name__}: {e}); leave model.compile=false"
-    if device_type == "cpu":
-        compiler = os.environ.get("CXX") or next((c for c in ("c++", "g++", "clang++") if shutil.which(c)), None)
-        if compiler is None or shutil.which(compiler) is None:
-            return ("model.compile=true on the CPU needs a C++ compiler for torch.compile's kernels (none found: "
-                    "install g++ or set CXX); leave model.compile=false")
-    elif device_type == "cuda":
-        compiler = os.environ.get("CC") or next((c for c in ("cc", "gcc", "clang") if shutil.which(c)), None)
-        if compiler is None or shutil.which(compiler) is None:
-            return ("model.compile=true on CUDA needs a C compiler for Triton's kernel launchers (none found: "
-                    "install gcc or set CC); leave model.compile=false")
+    if device_type not in _COMPILERS:
+        return None
+    variable, names, what, example = _COMPILERS[device_type]
+    compiler = os.environ.get(variable) or next((c for c in names if shutil.which(c)), None)
+    if compiler is None or shutil.which(compiler) is None:
+        return (f"model.compile=true on {device_type} needs {what} (none found: install {example} or set "
+                f"{variable}); leave model.compile=false")
     return None
 
 
-NETS = ("flow1", "dm1", "flow2", "dm2", "refine_net")
+_COMPILERS = {"cpu": ("CXX", ("c++", "g++", "clang++"), "a C++ compiler for torch.compile's kernels", "g++"),
+              "cuda": ("CC", ("cc", "gcc", "clang"), "a C compiler for Triton's kernel launchers", "gcc")}
+"""What torch.compile builds its kernels with, per device type: variable, names, purpose, a package."""
 
 
 def prepare_nets(chain: torch.nn.Module, channels_last: bool = False, compile: bool = False) -> torch.nn.Module:
@@ -198,8 +195,7 @@ def prepare_nets(chain: torch.nn.Module, channels_last: bool = False, compile: b
     if channels_last:
         chain.to(memory_format=torch.channels_last)
     if compile:
-        for name in NETS:
-            net = getattr(chain, name)
+        for net in chain.children():  # the chain's nets: flow1, dm1, flow2, dm2, refine_net
             if not getattr(net, "_compiled_call_impl", None):
                 net.compile()
     return chain

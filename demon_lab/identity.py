@@ -29,15 +29,15 @@ from demon_lab.execution import normalize_precision
 CODE_VERSION = 2
 """Bump when the training code changes what a stage produces."""
 
+EXECUTION_KEYS = ("channels_last", "compile")
+"""Keys of ``model`` that say how the nets run, not what they are (so in :data:`NON_SEMANTIC`)."""
+
 NON_SEMANTIC = ("tracking", "force", "hydra", "cache_dir", "eval.visualize", "eval.point_clouds", "row",
-                "data.num_workers", "threads", "model.channels_last", "model.compile")
+                "data.num_workers", "threads", *(f"model.{k}" for k in EXECUTION_KEYS))
 """Config keys (and whole subtrees) that do not change what a job computes: where it logs and
 caches, how many threads and loader workers it uses, the nets' memory layout and compilation (they
 change floating-point rounding at most, as the thread count does), what it draws, which report row
 it is."""
-
-EXECUTION_KEYS = ("channels_last", "compile")
-"""Keys of ``model`` that say how the nets run, not what they are (in :data:`NON_SEMANTIC`)."""
 
 
 def versions() -> dict[str, int]:

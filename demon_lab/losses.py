@@ -220,6 +220,23 @@ def ease_in_quad_down(step: int, duration: float) -> float:
     return 1 - t * t
 
 
+def preset(name: str) -> dict[str, float]:
+    """The loss weights of ``conf/loss/NAME.yaml`` (``released_code``: the job's default), with the
+    presets it builds on (its ``defaults``) merged in, as Hydra composes them."""
+    import yaml
+
+    from demon_lab.resources import CONF
+
+    def load(name: str) -> dict:
+        data = yaml.safe_load((CONF / "loss" / f"{name}.yaml").read_text())
+        merged: dict = {}
+        for parent in data.pop("defaults", []):
+            merged.update(load(parent))
+        return {**merged, **data}
+
+    return check_weights(load(name))
+
+
 def check_weights(weights: Mapping[str, float]) -> dict[str, float]:
     missing = [k for k in WEIGHT_KEYS if k not in weights]
     extra = [k for k in weights if k not in WEIGHT_KEYS and k != "name"]

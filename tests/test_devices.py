@@ -19,9 +19,7 @@ from demon_lab import geometry as geo
 from demon_lab.nets.chain import DeMoN
 from demon_lab.stages.modules import DepthMotionStage, FlowStage
 
-WEIGHTS = {"flow": 500, "flow_conf": 25, "flow_sig": 250, "flow_conf_sig": 25, "depth": 150, "depth_sig": 375,
-           "normals": 25, "rotation": 160, "translation": 45, "refine_depth": 150, "refine_depth_sig": 187.5,
-           "refine_normals": 25}  # conf/loss/released_code.yaml
+WEIGHTS = losses.preset("released_code")
 
 
 @pytest.fixture(autouse=True)
@@ -167,11 +165,14 @@ def test_a_mixed_precision_training_step_on_the_device_is_close_to_float32(devic
                     break
             out.append((loss.detach(), grad))
         results[name] = out
-    for (loss32, grad32), (loss_mixed, grad_mixed) in zip(results["32-true"], results[precision]):
+    for net, (loss32, grad32), (loss_mixed, grad_mixed) in zip(("flow1", "dm1"), results["32-true"],
+                                                                 results[precision]):
         assert torch.isfinite(loss_mixed) and torch.isfinite(grad_mixed).all()
-        # bf16 on the CPU, width 0.125: losses within 0.15 %, gradient cosines 0.976 (flow1) and 0.990 (dm1)
+        cosine = float(torch.nn.functional.cosine_similarity(grad32, grad_mixed, dim=0))
+        print(f"{precision} on {device}, {net}: loss {abs(float(loss_mixed / loss32) - 1):.2%} from float32, "
+              f"gradient cosine {cosine:.3f}")  # (pytest -s shows it)
         assert float(loss_mixed) == pytest.approx(float(loss32), rel=0.02)
-        assert float(torch.nn.functional.cosine_similarity(grad32, grad_mixed, dim=0)) > 0.95
+        assert cosine > 0.95
 
 
 @pytest.mark.parametrize("device", DEVICES)

@@ -6,7 +6,6 @@ import math
 
 import pytest
 import torch
-import yaml
 
 from demon_lab import losses, resources
 from demon_lab.nets import DeMoN, DepthMotionNet, FlowNet, RefineNet
@@ -156,14 +155,7 @@ def test_ramps():
     assert losses.ease_out_quad(1_000_000, 2_000_000) == 0.75
 
 
-def _preset(name: str) -> dict:
-
-    conf = resources.CONF / "loss"
-    data = yaml.safe_load((conf / f"{name}.yaml").read_text())
-    base = {}
-    for parent in data.pop("defaults", []):
-        base.update(_preset(parent))
-    return {**base, **data}
+_preset = losses.preset
 
 
 def test_loss_presets():
@@ -446,3 +438,13 @@ def test_ground_truth_is_computed_as_a_loss_reads_it_with_the_eager_values():
     assert sorted(gt) == sorted(eager)
     for key, value in eager.items():
         assert torch.equal(torch.nan_to_num(gt[key], nan=-1.0), torch.nan_to_num(value, nan=-1.0)), key
+
+
+@pytest.mark.parametrize("name", sorted(p.stem for p in (resources.CONF / "loss").glob("*.yaml")))
+def test_a_preset_loads_as_hydra_composes_it(name):
+    from hydra import compose, initialize_config_dir
+    from omegaconf import OmegaConf
+
+    with initialize_config_dir(str(resources.CONF), version_base="1.3"):
+        composed = OmegaConf.to_container(compose("config", overrides=[f"loss={name}"]).loss, resolve=True)
+    assert losses.preset(name) == losses.check_weights(composed)
