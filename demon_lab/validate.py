@@ -94,6 +94,18 @@ def _model_files(cfg: DictConfig) -> None:
     if cfg.model.get("compat") == "demon_original" and cfg.model.variant != "v1":
         raise ConfigError("model.compat: demon_original reproduces DeMoN's released v1 graph; it needs "
                           f"model.variant=v1, got {cfg.model.variant}")
+    from demon_lab.stages.schedule import correlation_of
+
+    if cfg.model.get("correlation") is not None:
+        from demon_lab.nets.blocks import check_correlation
+
+        try:
+            check_correlation(correlation_of(cfg.model))
+        except ValueError as e:
+            raise ConfigError(f"model.{e}") from None
+        if cfg.model.get("compat") == "demon_original":
+            raise ConfigError("model.correlation: compat=demon_original reproduces DeMoN's released graph, which has "
+                              "no correlation front; leave model.correlation null")
     weights = cfg.model.get("weights")
     if not weights:
         return
@@ -103,7 +115,8 @@ def _model_files(cfg: DictConfig) -> None:
         raise ConfigError(f"model.weights: {weights}: no such file")
     from demon_lab.weights import check_fits
 
-    why = check_fits(weights, cfg.model.variant, float(cfg.model.width), tuple(cfg.data.size))
+    why = check_fits(weights, cfg.model.variant, float(cfg.model.width), tuple(cfg.data.size),
+                     correlation_of(cfg.model))
     if why:
         raise ConfigError(f"model.weights: {why}")
     if not cfg.train:  # evaluated as they are: the passes run must not fall back on untrained nets

@@ -83,7 +83,8 @@ def misfit(chain: torch.nn.Module, nets: dict[str, dict[str, torch.Tensor]]) -> 
     return None
 
 
-def check_fits(path: str | Path, variant: str, width: float, size: tuple[int, int]) -> str | None:
+def check_fits(path: str | Path, variant: str, width: float, size: tuple[int, int],
+               correlation: tuple[int, int] | None = None) -> str | None:
     """Why the weights file does not fit the chain a config builds, or None (shapes only: no
     weights are copied, and the chain is built on the meta device)."""
     from demon_lab.nets import DeMoN
@@ -93,11 +94,12 @@ def check_fits(path: str | Path, variant: str, width: float, size: tuple[int, in
     except CheckpointError as e:
         return str(e)
     with torch.device("meta"):
-        chain = DeMoN(variant, width, tuple(size))
+        chain = DeMoN(variant, width, tuple(size), correlation=correlation)
     why = misfit(chain, nets)
     if why is None:
         return None
-    return (f"{path} does not fit the chain of model.variant={variant} model.width={width} "
+    front = "" if correlation is None else f" model.correlation={list(correlation)}"
+    return (f"{path} does not fit the chain of model.variant={variant} model.width={width}{front} "
             f"data.size={list(size)}: {why}. {RELEASED_HINT}")
 
 

@@ -448,3 +448,46 @@ def test_a_preset_loads_as_hydra_composes_it(name):
     with initialize_config_dir(str(resources.CONF), version_base="1.3"):
         composed = OmegaConf.to_container(compose("config", overrides=[f"loss={name}"]).loss, resolve=True)
     assert losses.preset(name) == losses.check_weights(composed)
+
+
+def test_correlation_peaks_at_the_displacement_between_the_feature_maps():
+    from demon_lab.nets.blocks import correlation
+
+    torch.manual_seed(4)
+    features1 = torch.randn(2, 64, 12, 16)
+    dy, dx = 2, -4  # features2[x + d] = features1[x]
+    features2 = torch.roll(features1, shifts=(dy, dx), dims=(2, 3))
+    volume = correlation(features1, features2, max_displacement=4, stride=2)
+    assert volume.shape == (2, 25, 12, 16)  # displacements -4, -2, 0, 2, 4 in each direction
+    k = (dy // 2 + 2) * 5 + (dx // 2 + 2)  # row-major over dy, then dx
+    inner = (slice(None), slice(4, -4), slice(4, -4))  # away from the border and the roll's wrap
+    assert (volume.argmax(1)[inner] == k).all()
+    torch.testing.assert_close(volume[:, k][inner], (features1 * features1).mean(1)[inner])
+    # beyond the map the second features are zero
+    assert (volume[:, 0, :4, :] == 0).all() and (volume[:, 24, -4:, :] == 0).all()
+    # stride 1: every displacement up to the range
+    assert correlation(features1, features2, 2, 1).shape[1] == 25
+
+
+def test_a_correlation_front_changes_only_the_flow_nets_front():
+    plain, corr = DeMoN("v1", 0.25, (64, 96)), DeMoN("v1", 0.25, (64, 96), correlation=(8, 2))
+    for name in ("dm1", "dm2", "refine_net"):
+        assert count(getattr(plain, name)) == count(getattr(corr, name))
+    for net in (corr.flow1, corr.flow2):
+        assert net.conv1.y.conv.in_channels == 3  # one image at a time, shared weights
+        assert net.conv2_1.y.conv.in_channels == 8 + 81 + (8 if net.iterative else 0)  # c(32) + 9x9 (+ extra)
+    torch.manual_seed(5)
+    image1, image2 = torch.rand(2, 3, 64, 96) - 0.5, torch.rand(2, 3, 64, 96) - 0.5
+    K = torch.tensor([[0.89, 1.19, 0.5, 0.5]] * 2)
+    out = corr(image1, image2, K, iterations=1)
+    assert out.passes[1].flow.shape == (2, 2, 16, 24)
+    out.passes[1].flow.abs().mean().backward()
+    assert all(p.grad is not None and torch.isfinite(p.grad).all() for p in corr.flow2.parameters())
+    # the front reads each image: swapping them changes the flow
+    with torch.no_grad():
+        swapped = corr.flow1(torch.cat([image2, image1], 1))[1]
+        assert not torch.allclose(swapped, corr.flow1(torch.cat([image1, image2], 1))[1])
+    with pytest.raises(ValueError, match="no correlation front"):
+        DeMoN("v1", 0.25, (64, 64), compat="demon_original", correlation=(4, 1))
+    with pytest.raises(ValueError, match=r"correlation: expected \[max_displacement, stride\]"):
+        DeMoN("v1", 0.25, (64, 64), correlation=(2, 4))

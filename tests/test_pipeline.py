@@ -216,6 +216,9 @@ def test_a_job_that_raises_leaves_its_run_failed(tmp_path):
     (["+schedule.stages.flow1.easy_first=0.5"], "schedule.stages.flow1.easy_first: expected [start, until]"),
     (["+schedule.stages.flow1.easy_first=[1.5,0.5]"], "schedule.stages.flow1.easy_first: expected [start, until]"),
     (["+schedule.stages.flow1.easy_first=[0.25,0]"], "schedule.stages.flow1.easy_first: expected [start, until]"),
+    (["model.correlation=[2,8]"], "model.correlation: expected [max_displacement, stride], positive integers"),
+    (["model.correlation=[4,1]", "model.compat=demon_original"],
+     "model.correlation: compat=demon_original reproduces DeMoN's released graph, which has no correlation front"),
     (["baseline.size=[16,16]"], "baseline.size: expected native or [H, W] with sides >= 32 pixels"),
     (["baseline.size=full"], "baseline.size: expected native or [H, W] with sides >= 32 pixels, got full"),
     (["data.real_pair=/does/not/exist"], "data.test[3].path (data.real_pair): /does/not/exist: no such file"),
@@ -298,6 +301,22 @@ def test_the_probe_options_are_absent_from_every_profile_and_key_only_their_stag
     assert all(a != b for a, b in zip(keys["plain"], keys["easy"], strict=True))
     assert keys["warm"][0] == keys["plain"][0] and all(a != b for a, b in zip(keys["plain"][1:], keys["warm"][1:],
                                                                              strict=True))
+
+
+@pytest.mark.parametrize("scale", ["smoke", "cpu", "paper"])
+def test_a_correlation_front_keys_every_stage_and_the_run_and_is_absent_by_default(scale):
+    import demon_lab.config  # noqa: F401  (registers the resolvers, as the app does)
+    from demon_lab.identity import run_key, semantic_config
+    from demon_lab.stages.schedule import build_chain, stage_dirs
+
+    with initialize_config_dir(CONF, version_base="1.3"):
+        plain = compose("config", [f"scale={scale}"])
+        corr = compose("config", [f"scale={scale}", "model.correlation=[8,2]"])
+    assert plain.model.correlation is None and "correlation" not in semantic_config(plain)["model"]
+    assert all(a.key != b.key for a, b in zip(stage_dirs(plain), stage_dirs(corr), strict=True))
+    assert run_key(plain) != run_key(corr)
+    if scale != "paper":  # (the paper-scale chain is 46 M parameters: the smaller ones show the same)
+        assert build_chain(corr).flow1.correlation == (8, 2) and build_chain(plain).flow1.correlation is None
 
 
 def test_train_stage_hands_the_probe_options_to_their_stages(tmp_path, monkeypatch):

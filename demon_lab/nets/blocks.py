@@ -98,13 +98,14 @@ class Head(nn.Module):
         return self.out(self.hidden(x))
 
 
-def add_encoder_levels(net: nn.Module, width: float, variant: str, conv5_kernel: int) -> int:
+def add_encoder_levels(net: nn.Module, width: float, variant: str, conv5_kernel: int,
+                       conv2_1_in: int | None = None) -> int:
     """Add the encoder layers shared by the flow and depth-motion nets, conv2_1 .. conv5_1
     (the layer tables of docs/reference.md §1.1 and §1.2; only conv5's kernel differs).
-    Returns conv5_1's channel count."""
+    ``conv2_1_in``: conv2_1's input channels (default DeMoN's ``c(64)``). Returns conv5_1's channel count."""
     c = lambda n: scaled(n, width)  # noqa: E731
     v1 = variant == "v1"
-    net.conv2_1 = ConvPair(c(64), c(64), 3, 1, variant)
+    net.conv2_1 = ConvPair(c(64) if conv2_1_in is None else conv2_1_in, c(64), 3, 1, variant)
     net.conv3 = ConvPair(c(64), c(128) if v1 else (c(96), c(128)), 5, 2, variant)
     net.conv3_1 = ConvPair(c(128), c(128), 3, 1, variant)
     net.conv4 = ConvPair(c(128), c(256) if v1 else (c(192), c(256)), 5, 2, variant)
@@ -113,6 +114,32 @@ def add_encoder_levels(net: nn.Module, width: float, variant: str, conv5_kernel:
     net.conv5 = ConvPair(c(256), c5, conv5_kernel, 2, variant)
     net.conv5_1 = ConvPair(c5, c5, 3, 1, variant)
     return c5
+
+
+def correlation(features1: torch.Tensor, features2: torch.Tensor, max_displacement: int,
+                stride: int = 1) -> torch.Tensor:
+    """FlowNetC's correlation of two (B, C, H, W) feature maps (Dosovitskiy et al. 2015, Eq. 1 with a
+    1x1 patch): channel ``k`` of the (B, D*D, H, W) result, ``D = 2 * (max_displacement // stride) + 1``,
+    is the channel mean of ``features1[x] * features2[x + d_k]`` for the displacement ``d_k`` (row-major
+    over ``dy``, then ``dx``, each from ``-max_displacement`` to ``max_displacement`` in steps of
+    ``stride``); zero where ``x + d_k`` leaves the map."""
+    reach = (max_displacement // stride) * stride
+    height, width = features1.shape[2:]
+    padded = F.pad(features2, (reach, reach, reach, reach))
+    shifts = range(-reach, reach + 1, stride)
+    window = lambda dy, dx: padded[:, :, reach + dy: reach + dy + height, reach + dx: reach + dx + width]  # noqa: E731
+    return torch.cat([(features1 * window(dy, dx)).mean(1, keepdim=True) for dy in shifts for dx in shifts], 1)
+
+
+def check_correlation(spec) -> tuple[int, int]:
+    """``(max_displacement, stride)`` of a correlation front: positive integers, the stride at most
+    the displacement."""
+    values = tuple(spec) if isinstance(spec, list | tuple) else ()
+    if (len(values) != 2 or any(isinstance(v, bool) or not isinstance(v, int) or v < 1 for v in values)
+            or values[1] > values[0]):
+        raise ValueError(f"correlation: expected [max_displacement, stride], positive integers with the stride "
+                         f"at most the displacement, got {spec!r}")
+    return values
 
 
 def check_variant(variant: str) -> None:

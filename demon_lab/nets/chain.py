@@ -24,7 +24,7 @@ from torch import nn
 
 from demon_lab import geometry as geo
 from demon_lab.execution import float32
-from demon_lab.nets.blocks import check_size, check_variant
+from demon_lab.nets.blocks import check_correlation, check_size, check_variant
 from demon_lab.nets.depth_motion_net import DepthMotionNet
 from demon_lab.nets.flow_net import FlowNet
 from demon_lab.nets.refine_net import RefineNet
@@ -138,10 +138,12 @@ class DeMoN(nn.Module):
     """The whole chain. ``size`` is the input (H, W): sides multiples of 32. ``compat``: None
     (demon_lab's net inputs) or ``"demon_original"``, the inputs DeMoN's released graph computes
     (docs/reference.md §11: DeMoN's ``warp2d``, no clipping, no replacement of non-finite
-    values), for its converted weights (``python -m demon_lab.convert``)."""
+    values), for its converted weights (``python -m demon_lab.convert``). ``correlation``:
+    ``(max_displacement, stride)`` of a correlation front in both flow nets (:class:`FlowNet`;
+    not DeMoN's design), or None."""
 
     def __init__(self, variant: str = "v1", width: float = 1.0, size: tuple[int, int] = (192, 256),
-                 compat: str | None = None):
+                 compat: str | None = None, correlation: tuple[int, int] | None = None):
         super().__init__()
         check_variant(variant)
         check_size(*size)
@@ -151,11 +153,15 @@ class DeMoN(nn.Module):
             raise ValueError(f"compat: expected one of {COMPATS}, got {compat!r}")
         if compat == "demon_original" and variant != "v1":
             raise ValueError("compat='demon_original' reproduces DeMoN's released v1 graph: it needs variant='v1'")
+        if compat == "demon_original" and correlation is not None:
+            raise ValueError("compat='demon_original' reproduces DeMoN's released graph, which has no "
+                             "correlation front")
         self.variant, self.width, self.size, self.compat = variant, width, tuple(size), compat
+        self.correlation = None if correlation is None else check_correlation(correlation)
         kw = dict(variant=variant, width=width, size=self.size)
-        self.flow1 = FlowNet(iterative=False, **kw)
+        self.flow1 = FlowNet(iterative=False, correlation=self.correlation, **kw)
         self.dm1 = DepthMotionNet(iterative=False, **kw)
-        self.flow2 = FlowNet(iterative=True, **kw)
+        self.flow2 = FlowNet(iterative=True, correlation=self.correlation, **kw)
         self.dm2 = DepthMotionNet(iterative=True, **kw)
         self.refine_net = RefineNet(variant=variant, width=width)
 

@@ -7,7 +7,18 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from demon_lab.nets.blocks import ConvPair, Head, UpConv, add_encoder_levels, check_variant, lrelu, scaled
+from demon_lab.nets.blocks import (
+    Conv,
+    ConvPair,
+    Head,
+    UpConv,
+    add_encoder_levels,
+    check_correlation,
+    check_variant,
+    correlation,
+    lrelu,
+    scaled,
+)
 
 
 class Dense5(nn.Module):
@@ -37,6 +48,12 @@ class FlowNet(nn.Module):
         variant: 'v1' (Caffe port) or 'v2' (released training code).
         width: multiplier of every channel count.
         size: (H, W) of the input; v2's dense layer depends on it.
+        correlation: ``(max_displacement, stride)`` of a correlation front (FlowNetC's design,
+            Dosovitskiy et al. 2015; not DeMoN's): conv1 and conv2 run on each image separately
+            with shared weights, and the encoder from ``conv2_1`` on reads the correlation of the two
+            feature maps at level 2 over displacements ``-max_displacement .. max_displacement``
+            in steps of ``stride`` (level-2 pixels), next to a 1x1 projection of image 1's features.
+            None: DeMoN's net, both images stacked at the input.
 
     ``forward(pair, extra=None)`` with ``pair`` (B, 6, H, W) = [image 1, image 2] returns
     ``(flowconf5, flowconf2)``: (B, 4, H/32, W/32) and (B, 4, H/4, W/4), channels
@@ -44,18 +61,25 @@ class FlowNet(nn.Module):
     """
 
     def __init__(self, iterative: bool = False, variant: str = "v1", width: float = 1.0,
-                 size: tuple[int, int] = (192, 256)):
+                 size: tuple[int, int] = (192, 256), correlation: tuple[int, int] | None = None):
         super().__init__()
         check_variant(variant)
         self.iterative, self.variant = iterative, variant
+        self.correlation = None if correlation is None else check_correlation(correlation)
         c = lambda n: scaled(n, width)  # noqa: E731
         v1 = variant == "v1"
-        self.conv1 = ConvPair(6, c(32) if v1 else (c(24), c(32)), 9, 2, variant)
+        self.conv1 = ConvPair(3 if self.correlation else 6, c(32) if v1 else (c(24), c(32)), 9, 2, variant)
         c2 = c(32) if iterative else (c(64) if v1 else (c(48), c(64)))
         self.conv2 = ConvPair(c(32), c2, 7, 2, variant)
+        level2 = self.conv2.out_channels
+        if self.correlation:
+            max_displacement, stride = self.correlation
+            self.project2 = Conv(level2, c(32), (1, 1), (1, 1), variant)
+            level2 = c(32) + (2 * (max_displacement // stride) + 1) ** 2
         if iterative:
             self.conv2_extra = ConvPair(9, c(32), 3, 1, variant)
-        c5 = add_encoder_levels(self, width, variant, conv5_kernel=5)
+            level2 += c(32)
+        c5 = add_encoder_levels(self, width, variant, conv5_kernel=5, conv2_1_in=level2)
         if not v1:
             self.dense5 = Dense5(c(96), (size[0] // 32, size[1] // 32))
             c5 += c(96)
@@ -67,7 +91,13 @@ class FlowNet(nn.Module):
         self.predict_flow2 = Head(c(64) + c(64), 4, variant, hidden=c(24))
 
     def forward(self, pair: torch.Tensor, extra: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
-        x = self.conv2(self.conv1(pair))
+        if self.correlation:
+            features1 = self.conv2(self.conv1(pair[:, :3]))
+            features2 = self.conv2(self.conv1(pair[:, 3:]))
+            x = torch.cat([self.project2(features1),
+                           lrelu(correlation(features1, features2, *self.correlation))], 1)
+        else:
+            x = self.conv2(self.conv1(pair))
         if self.iterative:
             if extra is None:
                 raise ValueError("extra: the iterative flow net needs its 9 extra input channels")

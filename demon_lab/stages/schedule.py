@@ -71,12 +71,21 @@ def build_chain(cfg: DictConfig) -> DeMoN:
     """The chain of the config's variant, width, input size and compat mode: untrained, or with
     ``model.weights`` loaded (:func:`demon_lab.weights.load_weights`); its nets in channels-last
     layout and compiled when ``model.channels_last`` / ``model.compile`` ask for it."""
-    chain = DeMoN(cfg.model.variant, float(cfg.model.width), tuple(cfg.data.size), cfg.model.get("compat"))
+    chain = DeMoN(cfg.model.variant, float(cfg.model.width), tuple(cfg.data.size), cfg.model.get("compat"),
+                  correlation_of(cfg.model))
     if cfg.model.get("weights"):
         from demon_lab.weights import load_weights
 
         load_weights(chain, cfg.model.weights)
     return prepare_nets(chain, bool(cfg.model.get("channels_last", False)), bool(cfg.model.get("compile", False)))
+
+
+def correlation_of(model: DictConfig) -> tuple[int, int] | None:
+    """``model.correlation`` as the chain takes it: ``(max_displacement, stride)`` or None."""
+    spec = model.get("correlation")
+    if OmegaConf.is_config(spec):
+        spec = OmegaConf.to_container(spec)
+    return tuple(spec) if isinstance(spec, list | tuple) else spec
 
 
 def load_stage(chain: DeMoN, stage: StageDir) -> None:
