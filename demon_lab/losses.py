@@ -149,9 +149,10 @@ class GroundTruth(Mapping):
     """DeMoN's ``prepare_ground_truth_tensors`` (`python/depthmotionnet/v2/losses.py`;
     docs/reference.md §4) from a batch of samples, each tensor computed on first access: inverse
     depth at levels 0, 2, 5 (median pyramid, built only as deep as a key needs), flow at levels 2
-    and 5 from depth and motion, normals at levels 0 and 2, and the motion. A stage reads only
-    what its loss does (the flow stages no normals, the depth-motion stages no level 5), with the
-    same values as computing everything."""
+    and 5 from depth and motion (or, for a batch that carries ``flow`` and no geometry, the 2-D
+    layers of ``layers_first``, that flow's mean over each level's pixel), normals at levels 0 and 2,
+    and the motion. A stage reads only what its loss does (the flow stages no normals, the
+    depth-motion stages no level 5), with the same values as computing everything."""
 
     KEYS = ("inv_depth0", "inv_depth2", "inv_depth5", "flow2", "flow5", "normals0", "normals2", "motion")
 
@@ -175,6 +176,8 @@ class GroundTruth(Mapping):
         kind, level = key.rstrip("0123456789"), int(key[-1])
         if kind == "inv_depth":
             return self._level(level)
+        if kind == "flow" and "flow" in b:  # a pair with flow and no geometry (2-D layers): its area mean
+            return torch.nn.functional.avg_pool2d(b["flow"], 2**level) if level else b["flow"]
         if kind == "flow":
             return geo.flow_from_depth_motion(self._level(level), self["motion"], k1, k2)
         return geo.normals_from_depth(self._level(level), k1)

@@ -269,6 +269,17 @@ def validate(cfg: DictConfig, here: bool = True) -> None:
                 raise ConfigError(f"schedule.stages.{name}.easy_first: expected [start, until]: the easiest "
                                   f"fraction start in (0, 1] widening to all samples at the fraction until in "
                                   f"(0, 1] of the stage, got {given!r}")
+        if spec.get("layers_first") is not None:
+            first = spec.layers_first
+            if spec.kind != "flow" or spec.get("net", "flow1") != "flow1":
+                raise ConfigError(f"schedule.stages.{name}.layers_first: only the bootstrap flow net's stage (flow1) "
+                                  f"trains on 2-D layers (this stage: {spec.kind}, {spec.get('net')})")
+            if isinstance(first, bool) or not isinstance(first, (int, float)) or not 0 < first <= 1:
+                raise ConfigError(f"schedule.stages.{name}.layers_first: expected a fraction of the stage in "
+                                  f"(0, 1], got {first!r}")
+            if spec.get("easy_first") is not None:
+                raise ConfigError(f"schedule.stages.{name}.layers_first: one curriculum at a time; "
+                                  f"leave easy_first unset")
     try:
         check_weights(OmegaConf.to_container(cfg.loss, resolve=True))
     except ValueError as e:

@@ -788,3 +788,74 @@ def test_a_training_draw_of_demon_h5_skips_the_derived_maps_and_keeps_every_valu
                     torch.testing.assert_close(got[key], value, rtol=0, atol=0, equal_nan=True)
                 else:
                     assert got[key] == value
+
+
+# ----------------------------------------------------------------------------- 2-D layers
+
+
+def test_layered_pairs_are_a_function_of_the_seed_and_their_flow_maps_view1_onto_view2():
+    """Image 2 sampled at p + flow(p) is image 1 (up to bilinear resampling of 8-bit textures) where
+    p + flow lands inside view 2 and the layer is not hidden there; with zero flow, or the flow's sign
+    or normalisation wrong, it is not."""
+    from demon_lab.data.layers import render_layers
+    from demon_lab.geometry import warp_image
+
+    a, b = render_layers(3, (96, 128)), render_layers(3, (96, 128))
+    assert all(torch.equal(a[k], b[k]) for k in ("image1", "image2", "flow"))
+    assert not torch.equal(a["image1"], render_layers(4, (96, 128))["image1"])
+    assert a["image1"].shape == a["image2"].shape == (3, 96, 128) and a["flow"].shape == (2, 96, 128)
+    assert a["image1"].min() >= -0.5 and a["image1"].max() <= 0.5
+    errors = {}
+    for seed in range(6):
+        pair = render_layers(seed, (96, 128))
+        flow = pair["flow"][None]
+        for label, f in (("flow", flow), ("zero", torch.zeros_like(flow)), ("negated", -flow), ("pixels", flow * 32)):
+            warped = warp_image(pair["image2"][None], f)[0]
+            diff = (warped - pair["image1"]).abs().mean(0)
+            errors.setdefault(label, []).append(float(diff[torch.isfinite(diff)].median()))
+    assert np.median(errors["flow"]) < 0.02
+    for wrong in ("zero", "negated", "pixels"):
+        assert np.median(errors[wrong]) > 4 * np.median(errors["flow"]), (wrong, errors)
+    pixels = torch.stack([render_layers(s)["flow"] for s in range(40)]) * torch.tensor([128.0, 96.0])[:, None, None]
+    mean = float(pixels.norm(dim=1).mean())
+    assert 6 < mean < 25, mean  # pixels at 128x96: the 3-D presets' flow is of this order
+
+
+def test_layers_dataset_renders_a_new_pair_for_every_index_and_reads_as_flow_ground_truth():
+    from demon_lab.data.datasets import LayersDataset
+
+    layers = LayersDataset((64, 96), seed=2)
+    assert len(layers) == LayersDataset.LENGTH and layers.name == "layers"
+    one, again, other = layers[(5, 123)], layers[5], layers[(6, 123)]
+    assert torch.equal(one["image1"], again["image1"]) and not torch.equal(one["image1"], other["image1"])
+    assert not torch.equal(one["image1"], LayersDataset((64, 96), seed=3)[5]["image1"])
+    from demon_lab import losses
+
+    batch = torch.utils.data.default_collate([one, other])
+    gt = losses.ground_truth(batch)
+    assert gt["flow2"].shape == (2, 2, 16, 24) and gt["flow5"].shape == (2, 2, 2, 3)
+    torch.testing.assert_close(gt["flow2"][0, :, 3, 4], batch["flow"][0, :, 12:16, 16:20].mean((1, 2)))
+    with pytest.raises(IndexError):
+        layers[-1]
+
+
+def test_a_lead_source_fills_the_first_fraction_of_the_stage_in_whole_batches():
+    """lead=(2, 0.25) over 200 keys in global batches of 8 (4 per process, 2 processes): the first 48
+    keys (0.25 x 200 = 50, rounded to 6 whole batches) come from source 2, none after it (weight 0);
+    the rest draw as the plain sampler; shards and a resumed stage see the keys of one process."""
+    args = ([10, 20, 10**9], [1.0, 1.0, 0.0], 200, 4)
+    keys = list(MixtureSampler(*args, batch=8, lead=(2, 0.25)))
+    assert [s for s, _, _ in keys[:48]] == [2] * 48 and all(s != 2 for s, _, _ in keys[48:])
+    assert len({i for _, i, _ in keys[:48]}) == 48  # (a fresh pair per key)
+    plain = list(MixtureSampler(*args, batch=8))
+    assert [k[0] for k in keys[48:]] == [k[0] for k in plain[48:]]
+    shards = [list(MixtureSampler(*args, rank=r, world=2, batch=4, lead=(2, 0.25))) for r in range(2)]
+    assert [k for b in range(25) for shard in shards for k in shard[4 * b:4 * b + 4]] == keys
+    assert list(MixtureSampler(*args, batch=8, skip=40, lead=(2, 0.25))) == keys[40:]
+    later = MixtureSampler(*args, batch=8, lead=(2, 0.25))
+    later.set_epoch(1)
+    assert all(s != 2 for s, _, _ in later)  # the lead is the start of the stage (its first epoch)
+    with pytest.raises(ValueError, match="lead: expected"):
+        MixtureSampler(*args, lead=(3, 0.3))
+    with pytest.raises(ValueError, match="one curriculum at a time"):
+        MixtureSampler([10, 20], [1.0, 1.0], 200, lead=(1, 0.3), easy_first=(0.5, 0.5), order=[range(10), range(20)])

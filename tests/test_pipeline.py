@@ -219,6 +219,8 @@ def test_a_job_that_raises_leaves_its_run_failed(tmp_path):
     (["model.correlation=[2,8]"], "model.correlation: expected [max_displacement, stride], positive integers"),
     (["model.correlation=[4,1]", "model.compat=demon_original"],
      "model.correlation: compat=demon_original reproduces DeMoN's released graph, which has no correlation front"),
+    (["+schedule.stages.dm1.layers_first=0.5"], "schedule.stages.dm1.layers_first: only the bootstrap flow net's"),
+    (["+schedule.stages.flow1.layers_first=0"], "schedule.stages.flow1.layers_first: expected a fraction of the stage"),
     (["baseline.size=[16,16]"], "baseline.size: expected native or [H, W] with sides >= 32 pixels"),
     (["baseline.size=full"], "baseline.size: expected native or [H, W] with sides >= 32 pixels, got full"),
     (["data.real_pair=/does/not/exist"], "data.test[3].path (data.real_pair): /does/not/exist: no such file"),
@@ -284,7 +286,8 @@ def test_longer_oracle_study_trains_dm1_four_times_the_profile_and_shares_flow1(
 
 @pytest.mark.parametrize("scale", ["smoke", "cpu", "paper"])
 def test_the_probe_options_are_absent_from_every_profile_and_key_only_their_stage_and_later(scale):
-    """level5_fade, gt_flow_warmup and easy_first exist for probes (studies/cpu_recipe.yaml): no profile sets them,
+    """level5_fade, gt_flow_warmup, easy_first and layers_first exist for probes (studies/cpu_recipe.yaml,
+    studies/cpu_design.yaml): no profile sets them,
     so no key holds them; set, they key their own stage and, through the upstream keys, the later ones."""
     from demon_lab.stages.schedule import stage_dirs
 
@@ -293,12 +296,13 @@ def test_the_probe_options_are_absent_from_every_profile_and_key_only_their_stag
         fade = compose("config", [f"scale={scale}", "+schedule.stages.flow1.level5_fade=1.0"])
         warm = compose("config", [f"scale={scale}", "+schedule.stages.dm1.gt_flow_warmup=0.5"])
         easy = compose("config", [f"scale={scale}", "+schedule.stages.flow1.easy_first=[0.25,0.5]"])
+        layers = compose("config", [f"scale={scale}", "+schedule.stages.flow1.layers_first=0.3"])
     for spec in plain.schedule.stages.values():
-        assert "level5_fade" not in spec and "gt_flow_warmup" not in spec and "easy_first" not in spec
+        assert not {"level5_fade", "gt_flow_warmup", "easy_first", "layers_first"} & set(spec)
     keys = {name: [d.key for d in stage_dirs(cfg)]
-            for name, cfg in (("plain", plain), ("fade", fade), ("warm", warm), ("easy", easy))}
-    assert all(a != b for a, b in zip(keys["plain"], keys["fade"], strict=True))
-    assert all(a != b for a, b in zip(keys["plain"], keys["easy"], strict=True))
+            for name, cfg in (("plain", plain), ("fade", fade), ("warm", warm), ("easy", easy), ("layers", layers))}
+    for option in ("fade", "easy", "layers"):
+        assert all(a != b for a, b in zip(keys["plain"], keys[option], strict=True))
     assert keys["warm"][0] == keys["plain"][0] and all(a != b for a, b in zip(keys["plain"][1:], keys["warm"][1:],
                                                                              strict=True))
 
@@ -380,6 +384,49 @@ def test_train_stage_draws_its_samples_with_the_stage_curriculum(tmp_path, monke
     assert easy.easy_first == (0.25, 0.5) and plain.easy_first is None
     datasets = training.build_datamodule(cfg, 2, 4).train_sources
     assert [list(o) for o in easy.order] == [list(flow_order(d)) for _, d in datasets]
+
+
+def test_a_flow1_stage_starts_on_fresh_2d_layers_and_trains_on_them(tmp_path, monkeypatch):
+    """layers_first of flow1 reaches its sampler as the lead of a 2-D layers source of the job's size
+    and seed (weight 0: none after the lead); a flow1 step on a batch of layers has a finite loss that
+    the flow net's every parameter gets a gradient from."""
+    from demon_lab.data.datasets import LayersDataset
+    from demon_lab.stages import training
+    from demon_lab.stages.modules import FlowStage
+    from demon_lab.stages.schedule import build_chain, stage_dirs
+
+    class Built(Exception):
+        pass
+
+    loaders = []
+
+    def fit(trainer, module, train_dataloaders, ckpt_path=None):
+        loaders.append(train_dataloaders)
+        raise Built
+
+    monkeypatch.setattr(training.L.Trainer, "fit", fit)
+    with initialize_config_dir(CONF, version_base="1.3"):
+        cfg = compose("config", ["scale=smoke", f"cache_dir={tmp_path}", "seed=3",
+                                 "+schedule.stages.flow1.layers_first=0.5"])
+    chain = build_chain(cfg)
+    for stage in stage_dirs(cfg)[:2]:  # flow1 with the layers, dm1 without
+        with pytest.raises(Built):
+            training.train_stage(cfg, chain, stage, logger=None, progress=False)
+    layered, plain = (loader.sampler for loader in loaders)
+    sources = loaders[0].dataset.datasets
+    assert isinstance(sources[-1], LayersDataset) and sources[-1].size == tuple(cfg.data.size)
+    assert sources[-1].seed == 3 and layered.lead_source == len(sources) - 1 and layered.p[-1] == 0
+    steps, batch = int(cfg.schedule.stages.flow1.steps), int(cfg.data.batch_size)
+    assert layered.lead_keys == round(0.5 * steps) * batch and plain.lead_keys == 0
+    assert not any(isinstance(d, LayersDataset) for d in loaders[1].dataset.datasets)
+    module = FlowStage(chain, weights=dict(cfg.loss), steps=10, lr=1e-4)
+    pairs = torch.utils.data.default_collate([sources[-1][i] for i in range(2)])
+    from demon_lab import losses
+
+    loss, terms = module.stage_loss(pairs, losses.ground_truth(pairs))
+    assert torch.isfinite(loss) and terms["flow2"] > 0
+    loss.backward()
+    assert all(p.grad is not None and torch.isfinite(p.grad).all() for p in chain.flow1.parameters())
 
 
 def test_a_stage_key_holds_only_the_loss_weights_that_stage_reads():

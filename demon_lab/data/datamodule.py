@@ -16,7 +16,7 @@ import numpy as np
 import torch
 from torch.utils.data import DataLoader
 
-from demon_lab.data.datasets import MixtureDataset, MixtureSampler, PairDataset, flow_order
+from demon_lab.data.datasets import LayersDataset, MixtureDataset, MixtureSampler, PairDataset, flow_order
 
 
 def _seed_worker(worker_id: int) -> None:
@@ -39,6 +39,8 @@ class DemonDataModule(L.LightningDataModule):
         world: int = 1,
         easy_first: Sequence[float] | None = None,
         pin_memory: bool = False,
+        layers_first: float | None = None,
+        layers_size: Sequence[int] = (96, 128),
     ):
         super().__init__()
         self.train_sources = [(float(e["weight"]), e["dataset"]) for e in train]
@@ -48,6 +50,9 @@ class DemonDataModule(L.LightningDataModule):
         self.rank, self.world = int(rank), int(world)  # data-parallel: this process's share of each batch
         self.easy_first = None if easy_first is None else tuple(easy_first)  # curriculum: MixtureSampler
         self.pin_memory = bool(pin_memory)  # page-locked batches: asynchronous copies to a CUDA device
+        # the first fraction of the stage on fresh 2-D layers (MixtureSampler's lead), then the sources
+        self.layers_first = None if layers_first is None else float(layers_first)
+        self.layers_size = tuple(layers_size)
         self._sampler: MixtureSampler | None = None
 
     def _loader(self, dataset, **kwargs) -> DataLoader:
@@ -61,9 +66,13 @@ class DemonDataModule(L.LightningDataModule):
             raise ValueError("data.train: no training source configured")
         weights, datasets = zip(*self.train_sources)
         order = None if self.easy_first is None else [flow_order(d) for d in datasets]
+        lead = None
+        if self.layers_first is not None:
+            weights, datasets = (*weights, 0.0), (*datasets, LayersDataset(self.layers_size, self.seed))
+            lead = (len(datasets) - 1, self.layers_first)
         self._sampler = MixtureSampler([len(d) for d in datasets], weights,
                                        self.samples_per_epoch, self.seed, self.skip, self.rank, self.world,
-                                       self.batch_size, self.easy_first, order)
+                                       self.batch_size, self.easy_first, order, lead)
         return self._loader(MixtureDataset(datasets), sampler=self._sampler, drop_last=True)
 
     def val_dataloader(self) -> list[DataLoader]:

@@ -337,6 +337,31 @@ class TumDataset(PairDataset):
 # ----------------------------------------------------------------------------- mixtures
 
 
+class LayersDataset(torch.utils.data.Dataset):
+    """Textured 2-D layers under affine motion (:func:`demon_lab.data.layers.render_layers`), a new
+    pair for every index: rendered when drawn, never cached. Index ``i`` with the dataset's ``seed``
+    is pair seed ``(seed, i)``; a draw ``(index, draw_seed)`` renders the pair of ``index`` (the
+    sampler gives every draw its own index from a range of ``length``). A sample has ``flow`` and no
+    depth or motion: only the flow stages read it (``layers_first``)."""
+
+    name = "layers"
+    LENGTH = 2**40
+
+    def __init__(self, size: Sequence[int] = (96, 128), seed: int = 0, length: int = LENGTH):
+        self.size, self.seed, self.length = (int(size[0]), int(size[1])), int(seed), int(length)
+
+    def __len__(self) -> int:
+        return self.length
+
+    def __getitem__(self, key: int | tuple[int, int]) -> smp.Sample:
+        from demon_lab.data.layers import render_layers
+
+        index = int(key if isinstance(key, int | np.integer) else key[0])
+        if not 0 <= index < self.length:
+            raise IndexError(f"{self.name}: index {index} out of range 0..{self.length - 1}")
+        return render_layers(self.seed * self.LENGTH + index, self.size)
+
+
 def flow_order(dataset: PairDataset) -> np.ndarray:
     """The dataset's indices from the smallest to the largest mean ground-truth flow magnitude
     (un-augmented samples; pixels without flow left out, a sample without any last): the order of
@@ -384,11 +409,16 @@ class MixtureSampler(torch.utils.data.Sampler):
     linearly from ``start`` at the first key to 1 at ``until x num_samples`` keys (a training stage
     is one epoch: fractions of the stage); from there on every sample, uniformly, as the plain
     sampler draws (the same call, though not always at the same position of the random stream:
-    a smaller bound can use fewer draws)."""
+    a smaller bound can use fewer draws).
+
+    ``lead = (source, fraction)``: the first ``fraction`` of the epoch's keys, rounded to whole global
+    batches, all come from ``source`` (whatever its weight; 0 keeps it out of the rest), the others as
+    above: a stage that starts on one kind of data (``layers_first``) and never mixes it into a batch."""
 
     def __init__(self, lengths: Sequence[int], weights: Sequence[float], num_samples: int, seed: int = 0,
                  skip: int = 0, rank: int = 0, world: int = 1, batch: int = 1,
-                 easy_first: Sequence[float] | None = None, order: Sequence[Sequence[int]] | None = None):
+                 easy_first: Sequence[float] | None = None, order: Sequence[Sequence[int]] | None = None,
+                 lead: tuple[int, float] | None = None):
         if len(lengths) != len(weights) or not lengths:
             raise ValueError("weights: expected one weight per source")
         w = np.asarray(weights, dtype=np.float64)
@@ -406,6 +436,15 @@ class MixtureSampler(torch.utils.data.Sampler):
         if self.easy_first is not None and (order is None or [len(o) for o in order] != self.lengths):
             raise ValueError("easy_first: expected an order of every source's samples")
         self.order = None if order is None else [np.asarray(o, dtype=np.int64) for o in order]
+        self.lead_source, self.lead_keys = -1, 0
+        if lead is not None:
+            source, fraction = int(lead[0]), float(lead[1])
+            if not 0 <= source < len(self.lengths) or not 0 < fraction <= 1:
+                raise ValueError(f"lead: expected (source, fraction in (0, 1]), got {lead}")
+            if self.easy_first is not None:
+                raise ValueError("lead: one curriculum at a time (easy_first is set)")
+            step = self.batch * self.world
+            self.lead_source, self.lead_keys = source, round(fraction * self.num_samples / step) * step
 
     def _share(self, key: int) -> float:
         """The easiest fraction of each source that key ``key`` of the sequence draws from."""
@@ -428,6 +467,8 @@ class MixtureSampler(torch.utils.data.Sampler):
         skip = self.skip if epoch == 0 else 0
         rng = np.random.default_rng([self.seed, epoch])
         sources = rng.choice(len(self.lengths), size=self.num_samples, p=self.p)
+        if self.lead_keys and epoch == 0:
+            sources[: self.lead_keys] = self.lead_source
         step = self.batch * self.world
         for n, s in enumerate(sources):
             share = self._share(epoch * self.num_samples + n)

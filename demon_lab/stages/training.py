@@ -58,9 +58,10 @@ def processes_launched_outside() -> bool:
 
 
 def build_datamodule(cfg: DictConfig, batch_size: int, samples: int, skip: int = 0, easy_first=None,
-                     pin_memory: bool = False):
+                     pin_memory: bool = False, layers_first: float | None = None):
     """Training data for ``samples`` draws in batches of ``batch_size`` (global: under DDP each
-    process loads its share of every batch); ``easy_first``: a stage's curriculum (MixtureSampler);
+    process loads its share of every batch); ``easy_first``, ``layers_first``: a stage's curriculum
+    (MixtureSampler: the easiest samples first; fresh 2-D layers for the first part of the stage);
     ``pin_memory``: batches in page-locked memory (faster copies to a CUDA device)."""
     from demon_lab.config import instantiate
     from demon_lab.data.datamodule import DemonDataModule
@@ -69,7 +70,8 @@ def build_datamodule(cfg: DictConfig, batch_size: int, samples: int, skip: int =
     world = world_size(cfg)
     return DemonDataModule(train=train, batch_size=batch_size // world, num_workers=cfg.data.num_workers,
                            samples_per_epoch=samples, seed=cfg.seed, skip=skip, rank=global_rank(cfg), world=world,
-                           easy_first=easy_first, pin_memory=pin_memory)
+                           easy_first=easy_first, pin_memory=pin_memory, layers_first=layers_first,
+                           layers_size=tuple(cfg.data.size))
 
 
 def train_stage(cfg: DictConfig, chain: DeMoN, stage: StageDir, logger: L.pytorch.loggers.Logger | None,
@@ -107,7 +109,7 @@ def train_stage(cfg: DictConfig, chain: DeMoN, stage: StageDir, logger: L.pytorc
     # With DDP the global batch is the configured one, each process taking its slice of every batch
     # (demon_lab's sampler deals them, not Lightning's, which would reshuffle the sequence).
     datamodule = build_datamodule(cfg, batch, int(spec.steps) * batch, skip=start_step * batch,
-                                  easy_first=spec.get("easy_first"),
+                                  easy_first=spec.get("easy_first"), layers_first=spec.get("layers_first"),
                                   pin_memory=resolve_accelerator(cfg.trainer.accelerator) == "cuda")
     checkpoint = L.pytorch.callbacks.ModelCheckpoint(
         dirpath=stage.path, filename="step{step}", save_last=True, save_top_k=0,
