@@ -42,7 +42,7 @@ from demon_lab.metrics import UNITS_NOTE, column
 from demon_lab.resources import STUDIES
 from demon_lab.tracking import TAG, metric_name, process_tracking_uri, version_tags
 
-FIGURES = ("iterations", "pixel_histograms", "motion_distributions", "qualitative")
+FIGURES = ("iterations", "pixel_histograms", "motion_distributions", "qualitative", "time_to_accuracy")
 CELL_KEYS = ("table", "dataset", "row", "column")
 """What one cell of a report table is keyed by (the index of ``build(...)["cells"]``)."""
 INFO_COLUMNS = ("run_id", "experiment_id", "status", "artifact_uri", "start_time", "end_time")
@@ -470,6 +470,7 @@ def report(name: str, uri: str, out_dir: Path, directory: Path = STUDIES) -> dic
         figure_motion_distributions,
         figure_pixel_histograms,
         figure_qualitative,
+        figure_time_to_accuracy,
         local_artifact,
     )
 
@@ -483,6 +484,8 @@ def report(name: str, uri: str, out_dir: Path, directory: Path = STUDIES) -> dic
             figures += figure_motion_distributions(spec, result, figures_dir)
         elif figure == "qualitative":
             figures += figure_qualitative(spec, result, figures_dir)
+        elif figure == "time_to_accuracy":
+            figures += figure_time_to_accuracy(spec, result, uri, figures_dir)
     result["figures"] = [str(p) for p in figures]
     used = result["used"].drop_duplicates("run_id")
     result["without_artifacts"] = sorted(r["run_id"] for _, r in used.iterrows() if local_artifact(r, "") is None)

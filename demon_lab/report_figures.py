@@ -1,6 +1,7 @@
 """The figures of a study's report (``python -m demon_lab.report``): metrics against the number of
 iterative passes (the supplementary's Figure 5 / Table 3), per-pixel depth-error histograms
-(Figure 6), per-sample motion-error distributions (Figure 7) and each row's qualitative panels.
+(Figure 6), per-sample motion-error distributions (Figure 7), each row's qualitative panels, and
+the bootstrap flow net's held-apart error against the wall-clock minutes of its stage.
 
 Each figure function takes the study spec and the report's ``build`` result and returns the PNG
 files it wrote; those drawn from run artifacts read them where the store keeps them on this machine.
@@ -24,7 +25,7 @@ from demon_lab.metrics import column
 from demon_lab.report import cell, has_values, paper_cells
 from demon_lab.visualize import safe_name
 
-FIGURE_KINDS = ("iterations", "pixel_errors", "motion", "qualitative")
+FIGURE_KINDS = ("iterations", "pixel_errors", "motion", "qualitative", "time_to_accuracy")
 """Every figure of a study is ``<study>_<kind>[_...].png`` in the report's figures folder."""
 
 
@@ -212,3 +213,62 @@ def figure_qualitative(spec, result, path: Path, per_row_limit: int = 1) -> list
                 shutil.copyfile(f, out)
                 outputs.append(out)
     return outputs
+
+
+def flow1_stage_run(client, run: Mapping[str, Any]):
+    """The MLflow run of the stage that trained a job run's ``flow1``: its own child run, or, where the
+    job found the stage in the cache, the stage run of the same key (the job that trained it); None if
+    the store has neither."""
+    from demon_lab.tracking import TAG
+
+    children = client.search_runs([run["experiment_id"]], filter_string=(
+        f"tags.`mlflow.parentRunId` = '{run['run_id']}' and tags.`{TAG}stage` = 'flow1'"))
+    if children:
+        return children[0]
+    keys = local_artifact(run, "stage_keys.json")
+    if keys is None:
+        return None
+    key = json.loads(keys.read_text()).get("flow1", {}).get("key")
+    experiments = [e.experiment_id for e in client.search_experiments()]
+    found = client.search_runs(experiments, filter_string=f"tags.`{TAG}stage_key` = '{key}'",
+                               order_by=["attributes.start_time ASC"]) if key else []
+    return found[0] if found else None
+
+
+def figure_time_to_accuracy(spec, result, uri: str, path: Path, dataset: str = "synthetic_sun3d") -> list[Path]:
+    """The held-apart EPE of each row's ``flow1`` (``val/<dataset>/epe`` as a multiple of that set's
+    zero-flow EPE, logged by the stage every ``tracking.val_every_n_steps``) against the minutes since
+    its stage run started, one line per seed: how soon each design leaves the zero-flow plateau."""
+    import matplotlib.pyplot as plt
+    from mlflow.tracking import MlflowClient
+
+    client = MlflowClient(tracking_uri=uri)
+    table = spec["tables"][0]
+    fig, ax = plt.subplots(figsize=(7.5, 4.2))
+    colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    drawn = 0
+    for k, (label, runs) in enumerate(_counted(result, table)):
+        for n, (_, run) in enumerate(runs.sort_values("seed").iterrows()):
+            stage = flow1_stage_run(client, run)
+            if stage is None:
+                continue
+            history = client.get_metric_history(stage.info.run_id, f"val/{dataset}/epe")
+            zero = client.get_metric_history(stage.info.run_id, f"val/{dataset}/zero_flow_epe")
+            if not history or not zero:
+                continue
+            points = sorted((m.timestamp, m.value) for m in history)
+            minutes = [(t - stage.info.start_time) / 60000 for t, _ in points]
+            ax.plot(minutes, [v / zero[0].value for _, v in points], color=colours[k % len(colours)], lw=1.2,
+                    marker="o", ms=2, label=label if n == 0 else None)
+            drawn += 1
+    if not drawn:
+        plt.close(fig)
+        return []
+    ax.axhline(1.0, color="k", lw=0.8, ls=":")
+    ax.axhline(0.5, color="k", lw=0.8, ls="--")
+    ax.set_xlabel("wall-clock minutes of the flow1 stage (held-apart scoring included)")
+    ax.set_ylabel(f"held-apart EPE / zero-flow EPE ({dataset} validation scenes)")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=6)
+    fig.suptitle(f"{spec['title']}: flow1's held-apart EPE against time, one line per seed", fontsize=9)
+    return [_save(fig, path / f"{spec['name']}_time_to_accuracy.png")]
