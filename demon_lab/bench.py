@@ -196,6 +196,7 @@ def bench_data(repeats: int) -> str:
                 rates.append(8 * rounds / (time.perf_counter() - start))
             cached, memory = rates
         rows.append((f"{size[1]}x{size[0]}", n, f"{one:.1f}", f"{many:.1f}", f"{cached:.0f}", f"{memory:.0f}"))
+    layers = layers_rates(max(3, repeats) * 8)
     lines = [
         "## data",
         "",
@@ -210,9 +211,28 @@ def bench_data(repeats: int) -> str:
         "|---|---:|---:|---:|---:|---:|",
         *[f"| {a} | {b} | {c} | {d} | {e} | {f} |" for a, b, c, d, e, f in rows],
         "",
+        "2-D layers under affine motion (`layers_first`; `demon_lab/data/layers.py`), generated as a training "
+        "draw generates them, one core: " + ", ".join(f"{rate:.0f} pairs/s at {w}x{h}" for (h, w), rate in layers)
+        + ".",
+        "",
         *_demon_h5_section(repeats),
     ]
     return "\n".join(lines)
+
+
+def layers_rates(pairs: int, sizes: Sequence[tuple[int, int]] = ((96, 128), (192, 256))) -> list[tuple]:
+    """Pairs per second of :class:`demon_lab.data.datasets.LayersDataset` draws at each size (one process)."""
+    from demon_lab.data.datasets import LayersDataset
+
+    rates = []
+    for size in sizes:
+        layers = LayersDataset(size)
+        layers[(0, 0)]  # the texture bank, built once per process
+        start = time.perf_counter()
+        for i in range(pairs):
+            layers[(1 + i, i)]
+        rates.append((size, pairs / (time.perf_counter() - start)))
+    return rates
 
 
 def write_demon_layout_file(path: Path, scenes: int, size: tuple[int, int] = (192, 256), seed: int = 0) -> None:
@@ -372,8 +392,8 @@ def bench_train(repeats: int) -> str:
     batch.pop("id")
     peak = _matmul_flops(repeats)
 
-    def stage_rate(make, channels_last: bool = False, compile_step: bool = False):
-        chain = DeMoN("v1", width, size)
+    def stage_rate(make, channels_last: bool = False, compile_step: bool = False, correlation=None):
+        chain = DeMoN("v1", width, size, correlation=correlation)
         if channels_last:
             chain = chain.to(memory_format=torch.channels_last)
         module = make(chain)
@@ -416,6 +436,9 @@ def bench_train(repeats: int) -> str:
     for name, make in kinds:
         rate, flops = stage_rate(make)
         rows.append((name, "default", f"{rate:.2f}", f"{flops / 1e9:.1f}", f"{flops / peak:.1%}"))
+    correlation = lambda c: FlowStage(c, weights=weights, steps=1000, lr=1e-4, net="flow1", sig_start=1.0)  # noqa: E731
+    rate, flops = stage_rate(correlation, correlation=(8, 2))
+    rows.append(("flow1", "correlation [8, 2]", f"{rate:.2f}", f"{flops / 1e9:.1f}", f"{flops / peak:.1%}"))
     for label, kw in (("channels-last", {"channels_last": True}), ("torch.compile", {"compile_step": True})):
         try:
             rate, flops = stage_rate(kinds[0][1], **kw)
