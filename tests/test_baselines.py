@@ -172,7 +172,7 @@ def test_degenerate_pairs_are_recorded_failures(sun3d_like):
                 s["motion"] = torch.zeros(6)
             return s
 
-    for method in ("base_ff", "base_sift", "base_oracle"):
+    for method in ("base_ff", "base_sift", "base_5pt", "base_oracle"):
         rows, _ = evaluate_baseline(method, Degenerate(), BaselineConfig())
         summary = summarize_baseline(rows)
         assert summary["n_samples"] == 2
@@ -207,7 +207,7 @@ def known_motion_pair():
     return controlled_pair("synthetic_sun3d", 1)
 
 
-@pytest.mark.parametrize("method", ["base_ff", "base_sift", "base_mat_f"])
+@pytest.mark.parametrize("method", ["base_ff", "base_sift", "base_5pt", "base_mat_f"])
 def test_each_baseline_recovers_a_known_motion(known_motion_pair, method):
     """Rotation within 1 degree and translation direction within 5 degrees on a textured scene
     (base_mat_f is given the exact flow in place of DeMoN's)."""
@@ -297,3 +297,173 @@ def test_a_baseline_job_reads_its_pairs_at_baseline_size(sun3d_test_pairs, monke
         seen.clear()
         (result,) = evaluate.evaluate_test_sets(cfg, None, refined=False)
         assert seen == [shape] and result.summary["n_samples"] == 1 and result.summary["n_failed"] == 0, size
+
+
+def zoomed_view2(sample, factor: float = 1.2):
+    """``sample`` with view 2 seen by another camera: focal length x ``factor`` (image 2 resampled by
+    K2' K2^-1, exact for any scene), its ``intrinsics2`` set to match."""
+    import cv2
+
+    s = dict(sample)
+    _, h, w = s["image1"].shape
+    k2 = s["intrinsics2"].clone()
+    k2[:2] *= factor
+    H = T.pixel_intrinsics(k2, h, w) @ np.linalg.inv(T.pixel_intrinsics(s["intrinsics2"], h, w))
+    image = cv2.warpPerspective(s["image2"].permute(1, 2, 0).numpy() + 0.5, H, (w, h), flags=cv2.INTER_LINEAR)
+    s["image2"], s["intrinsics2"] = torch.from_numpy(image - 0.5).permute(2, 0, 1).contiguous(), k2
+    return s
+
+
+def turned_view2(sample, axis, degrees: float):
+    """``sample`` with camera 2 turned about its centre by ``degrees`` about ``axis`` (image 2
+    resampled by K2 R K2^-1, exact for any scene), its motion set to match."""
+    import cv2
+
+    s = dict(sample)
+    _, h, w = s["image1"].shape
+    K2 = T.pixel_intrinsics(s["intrinsics2"], h, w)
+    axis = torch.tensor(axis, dtype=torch.float64)
+    turn = geo.angle_axis_to_matrix((axis / axis.norm() * math.radians(degrees))[None])[0]
+    image = cv2.warpPerspective(s["image2"].permute(1, 2, 0).numpy() + 0.5, K2 @ turn.numpy() @ np.linalg.inv(K2),
+                                (w, h), flags=cv2.INTER_LINEAR)
+    s["image2"] = torch.from_numpy(image - 0.5).permute(2, 0, 1).contiguous()
+    m = s["motion"].double()
+    r = geo.matrix_to_angle_axis((turn @ geo.angle_axis_to_matrix(m[None, :3])[0])[None])[0]
+    s["motion"] = torch.cat([r, turn @ m[3:]]).float()
+    return s
+
+
+def test_view1_pixels_brings_view_2_to_view_1s_camera():
+    """A point seen through K2 and mapped is where K1 sees the same ray; one camera: the same points."""
+    k1, k2 = np.array([0.89, 1.19, 0.5, 0.5]), np.array([1.1, 1.4, 0.46, 0.52])
+    rays = np.random.default_rng(0).uniform(-0.4, 0.4, (50, 2))
+    seen = [(T.pixel_intrinsics(k, 480, 640) @ np.c_[rays, np.ones(50)].T).T[:, :2] for k in (k1, k2)]
+    np.testing.assert_allclose(T.view1_pixels(seen[1], k1, k2, 480, 640), seen[0], atol=1e-9)
+    assert T.view1_pixels(seen[1], k1, k1, 480, 640) is seen[1]
+
+
+@pytest.fixture(scope="module")
+def sun3d_pair():
+    """The real SUN3D pair that ships with demon_lab, at its native 640x480."""
+    from demon_lab.data.datasets import PairFolderDataset
+    from demon_lab.resources import DATA
+
+    return PairFolderDataset(DATA / "sun3d_train_0.1m_to_0.2m_00000")[0]
+
+
+@pytest.mark.parametrize("method", ["base_ff", "base_sift", "base_5pt"])
+def test_each_baseline_uses_view_2s_own_intrinsics(sun3d_pair, method):
+    """The SUN3D pair with view 2 zoomed by 1.2 (as in pairs from two cameras): the motion is still
+    recovered (0.03-0.66 degrees of rotation measured, docs/results.md). Read with view 1's camera
+    for both views it is off by 4.5-5 degrees (what the baselines did before)."""
+    s = zoomed_view2(sun3d_pair)
+    errors = metrics.motion_errors(getattr(M, method)(s, BaselineConfig())["motion"], s["motion"].numpy())
+    assert errors["rot_deg"] < 1.0 and errors["tran_deg"] < 8.0, errors
+    one_camera = {**s, "intrinsics2": s["intrinsics"]}
+    wrong = metrics.motion_errors(getattr(M, method)(one_camera, BaselineConfig())["motion"], s["motion"].numpy())
+    print(f"\n{method}, SUN3D pair, view 2 zoomed 1.2: rot/tran {errors['rot_deg']:.2f}/{errors['tran_deg']:.2f} deg "
+          f"with each view's intrinsics, {wrong['rot_deg']:.2f}/{wrong['tran_deg']:.2f} with view 1's for both")
+    assert wrong["rot_deg"] > 3.0, (errors, wrong)
+
+
+def test_base_oracle_uses_view_2s_own_intrinsics():
+    """View 2 zoomed out (focal length x 0.85, so it sees all of view 1): the plane sweep (64 planes)
+    finds the depth; sweeping with view 1's camera for both views, its L1-rel is over 10 times as large."""
+    s = zoomed_view2(controlled_pair("synthetic_sun3d", 0), 0.85)
+    truth = {"inv_depth": s["inv_depth"][0], "motion": s["motion"], "intrinsics": s["intrinsics"]}
+    cfg = BaselineConfig(sweep_hypotheses=64)  # (160 by default: a finer sweep, at 2.5 times the time)
+    scores = metrics.evaluate_sample(M.base_oracle(s, cfg), truth)
+    assert scores["l1_rel"] < 0.15, scores
+    wrong = metrics.evaluate_sample(M.base_oracle({**s, "intrinsics2": s["intrinsics"]}, cfg), truth)
+    print(f"\nbase_oracle, view 2 zoomed 0.85: L1-rel {scores['l1_rel']:.3f} with each view's intrinsics, "
+          f"{wrong['l1_rel']:.3f} with view 1's for both")
+    assert wrong["l1_rel"] > 10 * scores["l1_rel"], (scores, wrong)
+
+
+def test_base_5pt_on_the_real_sun3d_pair_at_its_native_size(sun3d_pair):
+    """640x480, 225 SIFT matches: the 5-point RANSAC with its 1-pixel threshold is within a degree
+    of rotation and 8 of translation (0.31 and 5.29 measured, docs/results.md), where the 8-point
+    RANSAC of Base-SIFT, with the same matches, is off by more; a 2.5-pixel threshold (the 8-point
+    methods' at this width) costs the 5-point RANSAC a few times that translation error."""
+    s = sun3d_pair
+    assert tuple(s["image1"].shape[1:]) == (480, 640)
+    cfg = BaselineConfig()
+    five = M.base_5pt(s, cfg)
+    e5 = metrics.motion_errors(five["motion"], s["motion"].numpy())
+    assert e5["rot_deg"] < 1.0 and e5["tran_deg"] < 8.0, e5
+    assert five["inv_depth"].shape == (480, 640) and np.isfinite(five["inv_depth"]).all()
+    e8 = metrics.motion_errors(M.base_sift(s, cfg)["motion"], s["motion"].numpy())
+    assert e8["tran_deg"] > e5["tran_deg"] + 2, (e5, e8)
+    g1, g2 = T.to_gray_u8(s["image1"]), T.to_gray_u8(s["image2"])
+    x1, x2 = M._sift_matches(g1, g2, s, cfg)
+    K = T.pixel_intrinsics(s["intrinsics"], 480, 640)
+    loose, _ = M._pose_5point(x1, x2, K, T.scaled_threshold(cfg.ransac_threshold_px, 640), cfg)
+    e_loose = metrics.motion_errors(loose, s["motion"].numpy())
+    print(f"\nSUN3D pair, rot/tran (deg): base_5pt {e5['rot_deg']:.2f}/{e5['tran_deg']:.2f}, the same at 2.5 px "
+          f"{e_loose['rot_deg']:.2f}/{e_loose['tran_deg']:.2f}, base_sift {e8['rot_deg']:.2f}/{e8['tran_deg']:.2f}")
+    assert e_loose["tran_deg"] > 2 * e5["tran_deg"]
+
+
+def test_an_aborted_5point_ransac_is_run_again_on_reordered_points(monkeypatch):
+    """OpenCV 5's solver asserts on some degenerate samples, aborting the RANSAC: the run is repeated
+    on the points in another order, with the inlier mask in the caller's order; an abort on every
+    run is a recorded failure."""
+    import cv2
+
+    x1, x2, motion, k, *_ = correspondences()
+    pick = np.random.default_rng(0).choice(len(x1), 300, replace=False)
+    x1, x2 = x1[pick], x2[pick].copy()
+    x2[:30] += 25.0  # outliers, first in the caller's order
+    K = T.pixel_intrinsics(k, 96, 128)
+    real, calls = cv2.findEssentialMat, []
+
+    def flaky(a, *args, **kwargs):
+        calls.append(a.copy())
+        if len(calls) == 1:
+            raise cv2.error("(-215:Assertion failed) in function 'solvePoly'")
+        return real(a, *args, **kwargs)
+
+    monkeypatch.setattr(T.cv2, "findEssentialMat", flaky)
+    E, inliers = T.ransac_essential(x1, x2, K, 1.0, seed=0)
+    assert len(calls) == 2 and np.array_equal(calls[0], x1) and not np.array_equal(calls[1], x1)
+    assert not inliers[:30].any() and inliers[30:].mean() > 0.95
+    errors = metrics.motion_errors(T.pose_from_essential(E, x1, x2, K, inliers), motion)
+    assert errors["rot_deg"] < 0.05 and errors["tran_deg"] < 0.5, errors
+
+    def always(*args, **kwargs):
+        raise cv2.error("(-215:Assertion failed) in function 'solvePoly'")
+
+    monkeypatch.setattr(T.cv2, "findEssentialMat", always)
+    with pytest.raises(BaselineFailure, match="aborted 3 times"):
+        T.ransac_essential(x1, x2, K, 1.0)
+
+
+def test_the_baselines_study_runs_and_reports_every_method():
+    """Every method is a job of the baselines experiment and a row of its report."""
+    from omegaconf import OmegaConf
+
+    from demon_lab import resources
+    from demon_lab.validate import METHODS as VALID
+
+    assert "base_5pt" in M.METHODS and set(M.METHODS) <= set(VALID)
+    sweep = OmegaConf.load(resources.CONF / "experiment" / "baselines.yaml").hydra.sweeper.params.method
+    assert set(sweep.split(",")) == {"demon", *M.METHODS}
+    spec = OmegaConf.load(resources.STUDIES / "baselines.yaml")
+    rows = {r.match.method: r.label for t in spec.tables for r in t.rows}
+    assert set(rows) == {"demon", *M.METHODS} and rows["base_5pt"] == "Base-5pt"
+
+
+def test_the_sift_methods_follow_a_turn_of_14_degrees_on_a_real_pair(sun3d_pair):
+    """The SUN3D pair with camera 2 turned by 14.4 degrees (about (1, 1, 0.3)): SIFT matches it and
+    both SIFT methods recover the rotation within 1.5 degrees. DIS does not follow this flow (over
+    100 pixels), so Base-FF's motion is printed, not checked."""
+    s = turned_view2(sun3d_pair, (1.0, 1.0, 0.3), 14.4)
+    assert math.degrees(float(s["motion"][:3].norm())) > 13
+    k1, k2 = s["intrinsics"][None].double(), s["intrinsics2"][None].double()
+    flow = geo.flow_from_depth_motion(s["inv_depth"][None].double(), s["motion"][None].double(), k1, k2)[0]
+    length = torch.hypot(flow[0] * 640, flow[1] * 480)
+    found = {m: metrics.motion_errors(getattr(M, m)(s, BaselineConfig())["motion"], s["motion"].numpy())
+             for m in ("base_sift", "base_5pt", "base_ff")}
+    print(f"\nSUN3D pair, camera 2 turned 14.4 deg (median flow {length[s['inv_depth'][0] > 0].median():.0f} px), "
+          "rot/tran (deg): " + ", ".join(f"{m} {e['rot_deg']:.2f}/{e['tran_deg']:.2f}" for m, e in found.items()))
+    assert found["base_sift"]["rot_deg"] < 1.5 and found["base_5pt"]["rot_deg"] < 1.5, found

@@ -14,7 +14,15 @@ import numpy as np
 import torch
 
 from demon_lab import metrics
-from demon_lab.baselines.methods import METHODS, BaselineConfig, base_ff, base_mat_f, base_oracle, base_sift
+from demon_lab.baselines.methods import (
+    METHODS,
+    BaselineConfig,
+    base_5pt,
+    base_ff,
+    base_mat_f,
+    base_oracle,
+    base_sift,
+)
 from demon_lab.baselines.twoview import BaselineFailure
 
 __all__ = ["METHODS", "BaselineConfig", "BaselineFailure", "evaluate_baseline", "summarize_baseline"]
@@ -52,6 +60,8 @@ def evaluate_baseline(method: str, dataset, cfg: BaselineConfig, chain=None, ite
                 pred = base_ff(pair, cfg)
             elif method == "base_sift":
                 pred = base_sift(pair, cfg)
+            elif method == "base_5pt":
+                pred = base_5pt(pair, cfg)
             elif method == "base_mat_f":
                 out = chain(sample["image1"][None], sample["image2"][None], sample["intrinsics"][None],
                             iterations=iterations)

@@ -7,12 +7,16 @@ scored by ``demon_lab.metrics.evaluate_sample`` exactly like the networks:
 * ``base_ff`` — dense DIS flow (OpenCV; the stand-in for FlowFields), forward-backward filtering,
   normalised 8-point in RANSAC, pose from the essential matrix, depth by triangulating the flow;
 * ``base_sift`` — SIFT matches with the ratio test, 8-point in RANSAC, depth as ``base_ff``;
+* ``base_5pt`` — the same SIFT matches, Nister's 5-point in RANSAC (``cv2.findEssentialMat``,
+  1-pixel threshold), depth as ``base_ff``: a classical reference stronger than the paper's;
 * ``base_mat_f`` — Nister's 5-point in RANSAC (``cv2.findEssentialMat``) on the flow predicted by
   the trained DeMoN chain, depth by triangulating that flow;
 * ``base_oracle`` — ground-truth motion and plane-sweep stereo.
 
-``demon_lab.evaluate`` gives the methods each pair at ``baseline.size`` (by default the source's own
-resolution, whatever the network reads: the paper's baselines ran at 640x480 where DeMoN read 256x192).
+Each view's own intrinsics are used: view-2 points are brought to view 1's camera before the
+geometry, which takes one. ``demon_lab.evaluate`` gives the methods each pair at ``baseline.size``
+(by default the source's own resolution, whatever the network reads: the paper's baselines ran at
+640x480 where DeMoN read 256x192).
 """
 
 from __future__ import annotations
@@ -35,12 +39,19 @@ from demon_lab.baselines.twoview import (
     motion_from_fundamental,
     pixel_intrinsics,
     pose_from_essential,
+    ransac_essential,
     ransac_fundamental,
     scaled_threshold,
     to_gray_u8,
+    view1_pixels,
 )
 
-METHODS = ("base_ff", "base_sift", "base_mat_f", "base_oracle")
+METHODS = ("base_ff", "base_sift", "base_5pt", "base_mat_f", "base_oracle")
+
+FIVE_POINT_THRESHOLD_PX = 1.0
+"""Base-5pt's RANSAC threshold in pixels of the image it reads, at any size: SIFT locates a keypoint
+to about a pixel whatever the resolution (docs/results.md#classical-baselines measures 2.5 pixels,
+the 8-point methods' threshold at 640x480, against it)."""
 
 
 @dataclass(frozen=True)
@@ -69,33 +80,33 @@ def _subsample(n: int, limit: int, seed: int) -> np.ndarray:
     return np.sort(np.random.default_rng(seed).choice(n, limit, replace=False))
 
 
-def _flows(g1: np.ndarray, g2: np.ndarray, cfg: BaselineConfig) -> tuple[np.ndarray, np.ndarray]:
+def _in_view1(points: np.ndarray, sample: Mapping[str, Any], height: int, width: int) -> np.ndarray:
+    """View-2 pixel points brought to view 1's camera (a sample without ``intrinsics2`` has one camera)."""
+    return view1_pixels(points, sample["intrinsics"], sample.get("intrinsics2", sample["intrinsics"]), height, width)
+
+
+def _flow_in_view1(flow_px: np.ndarray, sample: Mapping[str, Any]) -> np.ndarray:
+    """A (H, W, 2) pixel flow whose end points are brought to view 1's camera (with one camera: the
+    flow itself, to the last bit)."""
+    h, w = flow_px.shape[:2]
+    grid = np.stack(np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64)), -1)
+    end = grid + flow_px
+    moved = _in_view1(end, sample, h, w)
+    return flow_px if moved is end else moved - grid
+
+
+def _consistent_flow(g1: np.ndarray, g2: np.ndarray, sample: Mapping[str, Any],
+                     cfg: BaselineConfig) -> tuple[np.ndarray, np.ndarray]:
+    """DIS flow in pixels (end points in view 1's camera) and its forward-backward consistent pixels."""
     args = (cfg.dis_preset, cfg.dis_finest_scale, cfg.dis_iterations)
-    return dense_flow(g1, g2, *args), dense_flow(g2, g1, *args)
+    forward, backward = dense_flow(g1, g2, *args), dense_flow(g2, g1, *args)
+    mask = forward_backward_mask(forward, backward, scaled_threshold(cfg.fb_threshold_px, g1.shape[1]))
+    return _flow_in_view1(forward, sample), mask
 
 
-def base_ff(sample: Mapping[str, Any], cfg: BaselineConfig) -> dict[str, np.ndarray]:
-    g1, g2 = to_gray_u8(sample["image1"]), to_gray_u8(sample["image2"])
-    h, w = g1.shape
-    forward, backward = _flows(g1, g2, cfg)
-    mask = forward_backward_mask(forward, backward, scaled_threshold(cfg.fb_threshold_px, w))
-    ys, xs = np.nonzero(mask)
-    if len(xs) < cfg.min_matches:
-        raise BaselineFailure(f"{len(xs)} forward-backward consistent pixels (needs {cfg.min_matches})")
-    pick = _subsample(len(xs), cfg.max_correspondences, cfg.seed)
-    x1 = np.stack([xs[pick], ys[pick]], 1).astype(np.float64)
-    x2 = x1 + forward[ys[pick], xs[pick]].astype(np.float64)
-    K = pixel_intrinsics(sample["intrinsics"], h, w)
-    Fm, inliers = ransac_fundamental(x1, x2, scaled_threshold(cfg.ransac_threshold_px, w), cfg.ransac_iterations,
-                                     cfg.seed, cfg.min_matches)
-    motion = motion_from_fundamental(Fm, x1, x2, K, inliers)
-    return {"inv_depth": depth_from_pixel_flow(forward, mask, motion, sample["intrinsics"]), "motion": motion,
-            "support": np.array(float(inliers.sum()))}
-
-
-def base_sift(sample: Mapping[str, Any], cfg: BaselineConfig) -> dict[str, np.ndarray]:
-    g1, g2 = to_gray_u8(sample["image1"]), to_gray_u8(sample["image2"])
-    h, w = g1.shape
+def _sift_matches(g1: np.ndarray, g2: np.ndarray, sample: Mapping[str, Any],
+                  cfg: BaselineConfig) -> tuple[np.ndarray, np.ndarray]:
+    """SIFT matches that pass Lowe's ratio test, in pixels (view 2's in view 1's camera)."""
     sift = cv2.SIFT_create()
     k1, d1 = sift.detectAndCompute(g1, None)
     k2, d2 = sift.detectAndCompute(g2, None)
@@ -107,21 +118,66 @@ def base_sift(sample: Mapping[str, Any], cfg: BaselineConfig) -> dict[str, np.nd
         raise BaselineFailure(f"{len(good)} SIFT matches pass the ratio test (needs {cfg.min_matches})")
     x1 = np.array([k1[m.queryIdx].pt for m in good], dtype=np.float64)
     x2 = np.array([k2[m.trainIdx].pt for m in good], dtype=np.float64)
+    return x1, _in_view1(x2, sample, *g1.shape)
+
+
+def _pose_8point(x1: np.ndarray, x2: np.ndarray, K: np.ndarray, threshold: float,
+                 cfg: BaselineConfig) -> tuple[np.ndarray, np.ndarray]:
+    """Motion and inliers by the 8-point algorithm in RANSAC, then E = K^T F K (Base-FF, Base-SIFT)."""
+    Fm, inliers = ransac_fundamental(x1, x2, threshold, cfg.ransac_iterations, cfg.seed, cfg.min_matches)
+    return motion_from_fundamental(Fm, x1, x2, K, inliers), inliers
+
+
+def _pose_5point(x1: np.ndarray, x2: np.ndarray, K: np.ndarray, threshold: float,
+                 cfg: BaselineConfig) -> tuple[np.ndarray, np.ndarray]:
+    """Motion and inliers by the 5-point algorithm in RANSAC (Base-5pt, Base-Mat-F)."""
+    E, inliers = ransac_essential(x1, x2, K, threshold, cfg.min_matches, cfg.seed)
+    return pose_from_essential(E, x1, x2, K, inliers), inliers
+
+
+def base_ff(sample: Mapping[str, Any], cfg: BaselineConfig) -> dict[str, np.ndarray]:
+    g1, g2 = to_gray_u8(sample["image1"]), to_gray_u8(sample["image2"])
+    h, w = g1.shape
+    flow, mask = _consistent_flow(g1, g2, sample, cfg)
+    ys, xs = np.nonzero(mask)
+    if len(xs) < cfg.min_matches:
+        raise BaselineFailure(f"{len(xs)} forward-backward consistent pixels (needs {cfg.min_matches})")
+    pick = _subsample(len(xs), cfg.max_correspondences, cfg.seed)
+    x1 = np.stack([xs[pick], ys[pick]], 1).astype(np.float64)
+    x2 = x1 + flow[ys[pick], xs[pick]].astype(np.float64)
     K = pixel_intrinsics(sample["intrinsics"], h, w)
-    Fm, inliers = ransac_fundamental(x1, x2, scaled_threshold(cfg.ransac_threshold_px, w), cfg.ransac_iterations,
-                                     cfg.seed, cfg.min_matches)
-    motion = motion_from_fundamental(Fm, x1, x2, K, inliers)
-    forward, backward = _flows(g1, g2, cfg)
-    mask = forward_backward_mask(forward, backward, scaled_threshold(cfg.fb_threshold_px, w))
-    return {"inv_depth": depth_from_pixel_flow(forward, mask, motion, sample["intrinsics"]), "motion": motion,
+    motion, inliers = _pose_8point(x1, x2, K, scaled_threshold(cfg.ransac_threshold_px, w), cfg)
+    return {"inv_depth": depth_from_pixel_flow(flow, mask, motion, sample["intrinsics"]), "motion": motion,
             "support": np.array(float(inliers.sum()))}
+
+
+def _sift_method(sample: Mapping[str, Any], cfg: BaselineConfig, pose, threshold: float) -> dict[str, np.ndarray]:
+    """SIFT matches, motion by ``pose`` with a RANSAC ``threshold`` in pixels, depth by triangulating
+    the DIS flow (Base-SIFT, Base-5pt)."""
+    g1, g2 = to_gray_u8(sample["image1"]), to_gray_u8(sample["image2"])
+    h, w = g1.shape
+    x1, x2 = _sift_matches(g1, g2, sample, cfg)
+    K = pixel_intrinsics(sample["intrinsics"], h, w)
+    motion, inliers = pose(x1, x2, K, threshold, cfg)
+    flow, mask = _consistent_flow(g1, g2, sample, cfg)
+    return {"inv_depth": depth_from_pixel_flow(flow, mask, motion, sample["intrinsics"]), "motion": motion,
+            "support": np.array(float(inliers.sum()))}
+
+
+def base_sift(sample: Mapping[str, Any], cfg: BaselineConfig) -> dict[str, np.ndarray]:
+    threshold = scaled_threshold(cfg.ransac_threshold_px, sample["image1"].shape[-1])
+    return _sift_method(sample, cfg, _pose_8point, threshold)
+
+
+def base_5pt(sample: Mapping[str, Any], cfg: BaselineConfig) -> dict[str, np.ndarray]:
+    return _sift_method(sample, cfg, _pose_5point, FIVE_POINT_THRESHOLD_PX)
 
 
 def base_mat_f(sample: Mapping[str, Any], cfg: BaselineConfig, flow: torch.Tensor) -> dict[str, np.ndarray]:
     """``flow``: (2, h, w) normalised flow predicted by the DeMoN chain for this sample."""
     f = flow.detach().double().cpu().numpy()
     _, h, w = f.shape
-    flow_px = np.stack([f[0] * w, f[1] * h], -1)
+    flow_px = _flow_in_view1(np.stack([f[0] * w, f[1] * h], -1), sample)
     valid = np.isfinite(flow_px).all(-1)
     ys, xs = np.nonzero(valid)
     if len(xs) < cfg.min_matches:
@@ -129,21 +185,17 @@ def base_mat_f(sample: Mapping[str, Any], cfg: BaselineConfig, flow: torch.Tenso
     x1 = np.stack([xs, ys], 1).astype(np.float64)
     x2 = x1 + flow_px[ys, xs]
     K = pixel_intrinsics(sample["intrinsics"], h, w)
-    E, mask = cv2.findEssentialMat(x1, x2, K, method=cv2.RANSAC, prob=0.999,
-                                   threshold=scaled_threshold(cfg.ransac_threshold_px, w))
-    if E is None or E.shape != (3, 3):
-        raise BaselineFailure("the 5-point RANSAC found no (unique) essential matrix")
-    inliers = mask[:, 0].astype(bool)
-    if inliers.sum() < cfg.min_matches:
-        raise BaselineFailure(f"the 5-point RANSAC kept {int(inliers.sum())} inliers (needs {cfg.min_matches})")
-    motion = pose_from_essential(E, x1, x2, K, inliers)
+    motion, inliers = _pose_5point(x1, x2, K, scaled_threshold(cfg.ransac_threshold_px, w), cfg)
     return {"inv_depth": depth_from_pixel_flow(flow_px, valid, motion, sample["intrinsics"]), "motion": motion,
             "support": np.array(float(inliers.sum()))}
 
 
 def plane_sweep(image1: torch.Tensor, image2: torch.Tensor, intrinsics: torch.Tensor, motion: torch.Tensor,
-                hypotheses: int = 160, window: int = 7, max_disparity: float = 0.6) -> torch.Tensor:
+                hypotheses: int = 160, window: int = 7, max_disparity: float = 0.6,
+                intrinsics2: torch.Tensor | None = None) -> torch.Tensor:
     """Fronto-parallel plane-sweep stereo with a known motion; returns inverse depth (H, W).
+
+    ``intrinsics2``: view 2's (default: view 1's).
 
     Hypotheses are uniform in inverse depth (unit-length t) between the values whose induced
     parallax has a median of one pixel and ``max_disparity`` of the image size; the cost is the window-averaged absolute
@@ -152,9 +204,10 @@ def plane_sweep(image1: torch.Tensor, image2: torch.Tensor, intrinsics: torch.Te
     """
     _, h, w = image1.shape
     k, m = intrinsics[None].double(), motion[None].double()
+    k2 = k if intrinsics2 is None else intrinsics2[None].double()
     delta = 1e-4  # parallax is linear in small inverse depths: measure its rate there
-    at_infinity = geo.flow_from_depth_motion(torch.full((1, 1, h, w), 1e-12, dtype=torch.float64), m, k)
-    at_delta = geo.flow_from_depth_motion(torch.full((1, 1, h, w), delta, dtype=torch.float64), m, k)
+    at_infinity = geo.flow_from_depth_motion(torch.full((1, 1, h, w), 1e-12, dtype=torch.float64), m, k, k2)
+    at_delta = geo.flow_from_depth_motion(torch.full((1, 1, h, w), delta, dtype=torch.float64), m, k, k2)
     shift = ((at_delta - at_infinity).norm(dim=1).median() / delta).item()  # normalised flow per unit xi
     if not np.isfinite(shift) or shift < 1e-9:
         raise BaselineFailure("the motion induces no parallax (zero baseline)")
@@ -163,7 +216,7 @@ def plane_sweep(image1: torch.Tensor, image2: torch.Tensor, intrinsics: torch.Te
     for chunk in xi.split(16):
         n = len(chunk)
         inv = chunk.view(n, 1, 1, 1).expand(n, 1, h, w)
-        flow = geo.flow_from_depth_motion(inv, m.expand(n, 6), k.expand(n, 4)).float()
+        flow = geo.flow_from_depth_motion(inv, m.expand(n, 6), k.expand(n, 4), k2.expand(n, 4)).float()
         warped = geo.warp_image(image2[None].expand(n, -1, -1, -1).float(), flow)
         inside = (warped != 0).any(1, keepdim=True)
         diff = (warped - image1[None].float()).abs().mean(1, keepdim=True)
@@ -188,5 +241,5 @@ def base_oracle(sample: Mapping[str, Any], cfg: BaselineConfig) -> dict[str, np.
         raise BaselineFailure("zero-baseline pair: plane sweep has no parallax")
     unit = torch.cat([motion[:3], motion[3:] / t])
     inv = plane_sweep(sample["image1"], sample["image2"], sample["intrinsics"], unit, cfg.sweep_hypotheses,
-                      cfg.sweep_window, cfg.sweep_max_disparity)
+                      cfg.sweep_window, cfg.sweep_max_disparity, sample.get("intrinsics2"))
     return {"inv_depth": inv.numpy(), "motion": unit.numpy()}

@@ -3,7 +3,9 @@ normalised 8-point algorithm inside RANSAC, pose from the essential matrix, dens
 
 Conventions follow demon_lab.geometry: motion ``[r, t]`` with ``X2 = R X1 + t``; intrinsics are
 normalised ``(fx, fy, cx, cy)`` with pixel centres at ``(x + 0.5) / W``. OpenCV works in pixel
-indices, so :func:`pixel_intrinsics` shifts the principal point by half a pixel.
+indices, so :func:`pixel_intrinsics` shifts the principal point by half a pixel. The geometry takes
+one camera matrix, view 1's: view-2 points are first mapped to view 1's camera
+(:func:`view1_pixels`), so pairs whose views have intrinsics of their own are exact too.
 
 Pixel thresholds are given for a 256-pixel-wide image (the network's paper resolution) and scale
 linearly with the width of the image they are applied to (:func:`scaled_threshold`).
@@ -34,6 +36,19 @@ def pixel_intrinsics(intrinsics: np.ndarray | torch.Tensor, height: int, width: 
     """3x3 pixel-index camera matrix from normalised intrinsics."""
     fx, fy, cx, cy = (float(v) for v in np.asarray(intrinsics, dtype=np.float64))
     return np.array([[fx * width, 0.0, cx * width - 0.5], [0.0, fy * height, cy * height - 0.5], [0.0, 0.0, 1.0]])
+
+
+def view1_pixels(points: np.ndarray, intrinsics, intrinsics2, height: int, width: int) -> np.ndarray:
+    """View-2 pixel points (..., 2) where view 1's camera would image the same rays: K1 K2^-1 x.
+
+    OpenCV's ``findEssentialMat`` and ``recoverPose`` take one camera matrix; the Middlebury pair's
+    principal points differ by 31 pixels and DeMoN's MVS pairs come from different cameras.
+    """
+    k1, k2 = (np.asarray(k, dtype=np.float64) for k in (intrinsics, intrinsics2))
+    if np.array_equal(k1, k2):
+        return points  # one camera: the points as they are, to the last bit
+    A = pixel_intrinsics(k1, height, width) @ np.linalg.inv(pixel_intrinsics(k2, height, width))
+    return points @ A[:2, :2].T + A[:2, 2]
 
 
 def to_gray_u8(image: torch.Tensor) -> np.ndarray:
@@ -167,6 +182,41 @@ def ransac_fundamental(x1: np.ndarray, x2: np.ndarray, threshold: float, iterati
     if inliers.sum() < min_inliers:
         raise BaselineFailure(f"RANSAC found {int(inliers.sum())} inliers of {n} (needs {min_inliers})")
     return F_best, inliers
+
+
+def ransac_essential(x1: np.ndarray, x2: np.ndarray, K: np.ndarray, threshold: float, min_inliers: int = 8,
+                     seed: int = 0, attempts: int = 3) -> tuple[np.ndarray, np.ndarray]:
+    """Nister's 5-point algorithm in RANSAC (OpenCV's ``findEssentialMat``, confidence 0.999):
+    E and the inlier mask for pixel points of one camera ``K``, ``threshold`` in pixels.
+
+    OpenCV draws its samples from a fixed generator. Its solver aborts the whole run on some
+    degenerate minimal samples (an assertion in OpenCV 5's ``solvePoly``); the run is then repeated
+    on the correspondences in another order (drawn from ``seed``), which draws other samples, up to
+    ``attempts`` runs in all. Raises BaselineFailure without a unique E, with fewer than
+    ``min_inliers`` inliers, or when every run aborts.
+    """
+    n = len(x1)
+    if n < 5:
+        raise BaselineFailure(f"only {n} correspondences (the 5-point algorithm needs 5)")
+    rng = np.random.default_rng(seed)
+    order = np.arange(n)
+    for attempt in range(attempts):
+        try:
+            E, mask = cv2.findEssentialMat(x1[order].astype(np.float64), x2[order].astype(np.float64), K,
+                                           method=cv2.RANSAC, prob=0.999, threshold=float(threshold))
+            break
+        except cv2.error as e:
+            if attempt == attempts - 1:
+                raise BaselineFailure(f"OpenCV's 5-point RANSAC aborted {attempts} times: "
+                                      f"{str(e).strip().splitlines()[-1]}") from e
+            order = rng.permutation(n)
+    if E is None or E.shape != (3, 3):
+        raise BaselineFailure("the 5-point RANSAC found no (unique) essential matrix")
+    inliers = np.zeros(n, bool)
+    inliers[order] = mask[:, 0].astype(bool)
+    if inliers.sum() < min_inliers:
+        raise BaselineFailure(f"the 5-point RANSAC kept {int(inliers.sum())} inliers (needs {min_inliers})")
+    return E, inliers
 
 
 def pose_from_essential(E: np.ndarray, x1: np.ndarray, x2: np.ndarray, K: np.ndarray,
