@@ -280,6 +280,20 @@ def validate(cfg: DictConfig, here: bool = True) -> None:
             if spec.get("easy_first") is not None:
                 raise ConfigError(f"schedule.stages.{name}.layers_first: one curriculum at a time; "
                                   f"leave easy_first unset")
+        if spec.get("restarts") is not None:
+            restarts = spec.restarts
+            if spec.kind != "flow" or spec.get("net", "flow1") != "flow1":
+                raise ConfigError(f"schedule.stages.{name}.restarts: only the bootstrap flow net's stage (flow1) "
+                                  f"screens restarts (this stage: {spec.kind}, {spec.get('net')})")
+            pair = OmegaConf.is_list(restarts) and len(restarts) == 2 and all(
+                isinstance(v, int) and not isinstance(v, bool) for v in restarts)
+            if not pair or not (restarts[0] >= 1 and 1 <= restarts[1] < spec.steps):
+                given = OmegaConf.to_container(restarts) if OmegaConf.is_list(restarts) else restarts
+                raise ConfigError(f"schedule.stages.{name}.restarts: expected [starts, steps]: starts >= 1, each "
+                                  f"trained 1 <= steps < the stage's {spec.steps} steps, got {given!r}")
+            if cfg.trainer.devices * cfg.trainer.num_nodes > 1:
+                raise ConfigError(f"schedule.stages.{name}.restarts: screening restarts runs in one process; "
+                                  f"train with trainer.devices=1 trainer.num_nodes=1")
     try:
         check_weights(OmegaConf.to_container(cfg.loss, resolve=True))
     except ValueError as e:

@@ -10,6 +10,7 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 from hydra import compose, initialize_config_dir
@@ -267,6 +268,7 @@ def test_a_job_that_raises_leaves_its_run_failed(tmp_path):
      "model.correlation: compat=demon_original reproduces DeMoN's released graph, which has no correlation front"),
     (["+schedule.stages.dm1.layers_first=0.5"], "schedule.stages.dm1.layers_first: only the bootstrap flow net's"),
     (["+schedule.stages.flow1.layers_first=0"], "schedule.stages.flow1.layers_first: expected a fraction of the stage"),
+    (["+schedule.stages.flow1.restarts=[3,0]"], "schedule.stages.flow1.restarts: expected [starts, steps]"),
     (["baseline.size=[16,16]"], "baseline.size: expected native or [H, W] with sides >= 32 pixels"),
     (["baseline.size=full"], "baseline.size: expected native or [H, W] with sides >= 32 pixels, got full"),
     (["data.real_pair=/does/not/exist"], "data.test[3].path (data.real_pair): /does/not/exist: no such file"),
@@ -473,6 +475,57 @@ def test_a_flow1_stage_starts_on_fresh_2d_layers_and_trains_on_them(tmp_path, mo
     assert torch.isfinite(loss) and terms["flow2"] > 0
     loss.backward()
     assert all(p.grad is not None and torch.isfinite(p.grad).all() for p in chain.flow1.parameters())
+
+
+def test_restarts_screen_starts_of_flow1_and_the_stage_continues_from_the_best(tmp_path):
+    """restarts=[1, 1] is the plain stage, to the last bit (start 0 is the chain's own initialisation and
+    the stage continues from its checkpoint as a resumed stage does); restarts=[3, 1] trains three starts
+    for one step, logs each one's held-apart EPE, continues from the lowest and keeps only its checkpoint."""
+    from demon_lab.stages import training
+    from demon_lab.stages.schedule import build_chain, stage_dirs
+
+    class Recorder:
+        def __init__(self):
+            self.logged = []
+
+        def log_metrics(self, metrics, step=None):
+            self.logged.append((dict(metrics), step))
+
+    def trained(*extra, logger=None):
+        with initialize_config_dir(CONF, version_base="1.3"):
+            cfg = compose("config", ["scale=smoke", f"cache_dir={tmp_path / str(len(list(tmp_path.iterdir())))}",
+                                     "schedule.stages.flow1.steps=3", *extra])
+        torch.manual_seed(0)
+        chain = build_chain(cfg)
+        stage = stage_dirs(cfg)[0]
+        training.train_stage(cfg, chain, stage, logger=None, progress=False) if logger is None else \
+            _train_with(training, cfg, chain, stage, logger)
+        return chain.flow1.state_dict(), stage
+
+    plain, _ = trained()
+    one, _ = trained("+schedule.stages.flow1.restarts=[1,1]")
+    assert all(torch.equal(plain[k], one[k]) for k in plain)
+    recorder = Recorder()
+    three, stage = trained("+schedule.stages.flow1.restarts=[3,1]", logger=recorder)
+    scores = [m["restart/val_epe"] for m, _ in recorder.logged if "restart/val_epe" in m]
+    chosen = [m["restart/chosen"] for m, _ in recorder.logged if "restart/chosen" in m]
+    assert len(scores) == 3 and len(set(scores)) == 3 and chosen == [float(np.argmin(scores))]
+    assert [p.name for p in stage.path.glob("restart*.ckpt")] == [f"restart{int(chosen[0])}.ckpt"]
+    assert any(not torch.equal(plain[k], three[k]) for k in plain) == (chosen[0] != 0)
+
+
+def _train_with(training, cfg, chain, stage, logger):
+    """train_stage with a logger that records the metrics logged outside Lightning's own logging."""
+    original = training.L.Trainer.__init__
+
+    def without_logger(self, *args, **kwargs):  # the stage's own curves need an MLflow run: not here
+        kwargs["logger"] = False
+        original(self, *args, **kwargs)
+
+    import unittest.mock
+
+    with unittest.mock.patch.object(training.L.Trainer, "__init__", without_logger):
+        training.train_stage(cfg, chain, stage, logger=logger, progress=False)
 
 
 def test_a_stage_key_holds_only_the_loss_weights_that_stage_reads():

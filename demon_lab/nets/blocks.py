@@ -26,6 +26,15 @@ def lrelu(x: torch.Tensor) -> torch.Tensor:
     return F.leaky_relu(x, 0.1)
 
 
+def initialise(layer: nn.Module) -> None:
+    """The flow and depth-motion nets' initialisation of a convolution, transposed convolution or
+    (v2's ``Dense5``) fully connected layer: He-normal weights (TF's variance scaling), zero biases.
+    Other modules are left as they are, so ``net.apply(initialise)`` draws a new start for a net."""
+    if isinstance(layer, nn.Conv2d | nn.ConvTranspose2d | nn.Linear):
+        nn.init.kaiming_normal_(layer.weight, a=0.0, nonlinearity="relu")
+        nn.init.zeros_(layer.bias)
+
+
 def _same_padding(size: int, kernel: int, stride: int) -> tuple[int, int]:
     """TF 'same' padding (before, after) along one axis."""
     out = -(-size // stride)
@@ -41,8 +50,7 @@ class Conv(nn.Module):
         super().__init__()
         self.conv = nn.Conv2d(c_in, c_out, kernel, stride)
         self.kernel, self.stride, self.variant, self.relu = kernel, stride, variant, relu
-        nn.init.kaiming_normal_(self.conv.weight, a=0.0, nonlinearity="relu")  # TF variance scaling
-        nn.init.zeros_(self.conv.bias)
+        initialise(self.conv)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         (kh, kw), (sh, sw) = self.kernel, self.stride
@@ -78,8 +86,7 @@ class UpConv(nn.Module):
         super().__init__()
         self.deconv = nn.ConvTranspose2d(c_in, c_out, 4, 2, 1)
         self.relu = relu
-        nn.init.kaiming_normal_(self.deconv.weight, a=0.0, nonlinearity="relu")
-        nn.init.zeros_(self.deconv.bias)
+        initialise(self.deconv)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         y = self.deconv(x)

@@ -16,6 +16,7 @@ from demon_lab.nets.blocks import (
     check_correlation,
     check_variant,
     correlation,
+    initialise,
     lrelu,
     scaled,
 )
@@ -29,8 +30,7 @@ class Dense5(nn.Module):
         self.channels, self.level5 = channels, level5
         units = channels * level5[0] * level5[1]
         self.fc = nn.Linear(units, units)
-        nn.init.kaiming_normal_(self.fc.weight, nonlinearity="relu")
-        nn.init.zeros_(self.fc.bias)
+        initialise(self.fc)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         head = x[:, : self.channels].flatten(1)  # C, H, W order

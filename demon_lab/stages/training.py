@@ -13,6 +13,7 @@ import gc
 import logging
 import time
 from collections.abc import Callable
+from pathlib import Path
 
 import lightning as L
 from omegaconf import DictConfig, OmegaConf
@@ -103,6 +104,8 @@ def train_stage(cfg: DictConfig, chain: DeMoN, stage: StageDir, logger: L.pytorc
                                channels_last=bool(cfg.model.get("channels_last", False)), **kwargs)
     batch = int(spec.get("batch_size") or cfg.data.batch_size)
     resume = stage.last_checkpoint if stage.last_checkpoint.is_file() else None
+    if resume is None and spec.get("restarts") is not None:
+        resume = screen_restarts(cfg, chain, stage, module, logger)
     start_step = _checkpoint_step(resume) if resume is not None else 0
     # A resumed stage continues the sample sequence where the checkpoint left it: same batches,
     # same result as an uninterrupted run (on the CPU).
@@ -122,16 +125,8 @@ def train_stage(cfg: DictConfig, chain: DeMoN, stage: StageDir, logger: L.pytorc
         passes = int(spec.iterations) if kind == "refine" else int(stage.name in ("flow2", "dm2", "iterative"))
         callbacks.append(StageValidation(stage.name, [instantiate(e) for e in cfg.data.val],
                                          int(cfg.tracking.get("val_every_n_steps", 0)), passes))
-    trainer = L.Trainer(
-        max_steps=int(spec.steps), accelerator=cfg.trainer.accelerator, devices=int(cfg.trainer.devices),
-        num_nodes=int(cfg.trainer.num_nodes), strategy="ddp" if world_size(cfg) > 1 else "auto",
-        logger=logger if logger is not None else False, callbacks=callbacks,
-        precision=normalize_precision(cfg.get("precision", 32)),
-        log_every_n_steps=int(cfg.tracking.log_every_n_steps), gradient_clip_val=float(cfg.schedule.grad_clip),
-        gradient_clip_algorithm="value", enable_progress_bar=progress, enable_model_summary=False,
-        num_sanity_val_steps=0, limit_val_batches=0, deterministic="warn", benchmark=False,
-        use_distributed_sampler=False,
-        plugins=[atomic_checkpoint_io()])
+    trainer = _trainer(cfg, int(spec.steps), logger=logger if logger is not None else False, callbacks=callbacks,
+                       enable_progress_bar=progress)
     if resume is not None:
         log.info("resuming stage %s from step %d (%s)", stage.name, start_step, resume)
     loader = datamodule.train_dataloader()  # (an easy_first curriculum orders its sources here: not timed)
@@ -151,6 +146,73 @@ def train_stage(cfg: DictConfig, chain: DeMoN, stage: StageDir, logger: L.pytorc
     del trainer, module, datamodule
     gc.collect()
     return figures
+
+
+def _trainer(cfg: DictConfig, steps: int, **kwargs) -> L.Trainer:
+    """A stage's Trainer: its devices, precision and gradient clipping, as DeMoN's optimiser does."""
+    return L.Trainer(
+        max_steps=steps, accelerator=cfg.trainer.accelerator, devices=int(cfg.trainer.devices),
+        num_nodes=int(cfg.trainer.num_nodes), strategy="ddp" if world_size(cfg) > 1 else "auto",
+        precision=normalize_precision(cfg.get("precision", 32)),
+        log_every_n_steps=int(cfg.tracking.log_every_n_steps), gradient_clip_val=float(cfg.schedule.grad_clip),
+        gradient_clip_algorithm="value", enable_model_summary=False,
+        num_sanity_val_steps=0, limit_val_batches=0, deterministic="warn", benchmark=False,
+        use_distributed_sampler=False, plugins=[atomic_checkpoint_io()], **kwargs)
+
+
+def screen_restarts(cfg: DictConfig, chain: DeMoN, stage: StageDir, module: L.LightningModule,
+                    logger: L.pytorch.loggers.Logger | None) -> Path:
+    """The stage option ``restarts: [k, steps]`` (PWC-Net's practice of restarting a flow net stuck at
+    a poor start): train ``k`` starts of the stage's net for its first ``steps`` steps, each on the
+    stage's own first batches and learning rates, score each on the held-apart sets (``data.val``,
+    the mean flow EPE of the pass the stage trains), and return the checkpoint of the best, from
+    which the stage continues to its end. Start 0 is the chain's own initialisation, start ``i``
+    the net drawn anew from seed ``(seed, i)``. Each start's score is logged on the stage's run
+    (``restart/val_epe`` at step ``i``, ``restart/chosen``)."""
+    import torch
+
+    from demon_lab.config import instantiate
+    from demon_lab.nets.blocks import initialise
+    from demon_lab.stages.validation import StageValidation
+
+    spec = cfg.schedule.stages[stage.name]
+    starts, steps = int(spec.restarts[0]), int(spec.restarts[1])
+    batch = int(spec.get("batch_size") or cfg.data.batch_size)
+    (net_name,) = TRAINED_NETS[stage.name]
+    net = getattr(chain, net_name)
+    scorer = StageValidation(stage.name, [instantiate(e) for e in cfg.data.val], 0, 0)
+    own = {k: v.clone() for k, v in net.state_dict().items()}
+    scores = []
+    for i in range(starts):
+        if i == 0:
+            net.load_state_dict(own)
+        else:
+            with torch.random.fork_rng(devices=[]):
+                torch.manual_seed(int(cfg.seed) * 1_000_003 + i)
+                net.apply(initialise)
+        data = build_datamodule(cfg, batch, int(spec.steps) * batch, easy_first=spec.get("easy_first"),
+                                layers_first=spec.get("layers_first"))
+        # saved at its last step inside the epoch, as the stage's own checkpoints: the stage resumes from it
+        saved = L.pytorch.callbacks.ModelCheckpoint(dirpath=stage.path, filename=f"restart{i}", save_top_k=-1,
+                                                    every_n_train_steps=steps, enable_version_counter=False)
+        trainer = _trainer(cfg, steps, logger=False, callbacks=[saved], enable_progress_bar=False)
+        trainer.fit(module, train_dataloaders=data.train_dataloader())
+        chain.eval()
+        with torch.no_grad():
+            epe = [scorer._scores(chain, dataset, module.channels_last)["epe"] for dataset in scorer.datasets]
+        scores.append(sum(epe) / len(epe))
+        log.info("stage %s: start %d of %d: held-apart EPE %.4f after %d steps", stage.name, i + 1, starts,
+                 scores[-1], steps)
+        if logger is not None:
+            logger.log_metrics({"restart/val_epe": scores[-1]}, step=i)
+    best = min(range(starts), key=scores.__getitem__)
+    for i in range(starts):
+        if i != best:
+            (stage.path / f"restart{i}.ckpt").unlink()
+    if logger is not None:
+        logger.log_metrics({"restart/chosen": float(best)}, step=starts)
+    log.info("stage %s: continues from start %d (held-apart EPE %.4f)", stage.name, best + 1, scores[best])
+    return stage.path / f"restart{best}.ckpt"
 
 
 def _checkpoint_step(path) -> int:
