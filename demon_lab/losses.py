@@ -176,7 +176,7 @@ class GroundTruth(Mapping):
         kind, level = key.rstrip("0123456789"), int(key[-1])
         if kind == "inv_depth":
             return self._level(level)
-        if kind == "flow" and "flow" in b:  # a pair with flow and no geometry (2-D layers): its area mean
+        if kind == "flow" and "inv_depth" not in b:  # a pair with flow and no geometry (2-D layers): its area mean
             return torch.nn.functional.avg_pool2d(b["flow"], 2**level) if level else b["flow"]
         if kind == "flow":
             return geo.flow_from_depth_motion(self._level(level), self["motion"], k1, k2)

@@ -129,6 +129,13 @@ def _model_files(cfg: DictConfig) -> None:
                               f"iterations={cfg.iterations} evaluates (the refinement net is optional)")
 
 
+def _flow1_only(name: str, spec: DictConfig, option: str, what: str) -> None:
+    """A stage option that only the bootstrap flow net's stage (flow1) takes."""
+    if spec.kind != "flow" or spec.get("net", "flow1") != "flow1":
+        raise ConfigError(f"schedule.stages.{name}.{option}: only the bootstrap flow net's stage (flow1) {what} "
+                          f"(this stage: {spec.kind}, {spec.get('net')})")
+
+
 def _kept_nets(cfg: DictConfig, stage: str, before: list[str]) -> None:
     """A stage of 0 steps trains nothing: its nets stay as they are at that point of the schedule,
     so each must come from an earlier stage that trains it or from ``model.weights``."""
@@ -271,9 +278,7 @@ def validate(cfg: DictConfig, here: bool = True) -> None:
                                   f"(0, 1] of the stage, got {given!r}")
         if spec.get("layers_first") is not None:
             first = spec.layers_first
-            if spec.kind != "flow" or spec.get("net", "flow1") != "flow1":
-                raise ConfigError(f"schedule.stages.{name}.layers_first: only the bootstrap flow net's stage (flow1) "
-                                  f"trains on 2-D layers (this stage: {spec.kind}, {spec.get('net')})")
+            _flow1_only(name, spec, "layers_first", "trains on 2-D layers")
             if isinstance(first, bool) or not isinstance(first, (int, float)) or not 0 < first <= 1:
                 raise ConfigError(f"schedule.stages.{name}.layers_first: expected a fraction of the stage in "
                                   f"(0, 1], got {first!r}")
@@ -282,9 +287,7 @@ def validate(cfg: DictConfig, here: bool = True) -> None:
                                   f"leave easy_first unset")
         if spec.get("restarts") is not None:
             restarts = spec.restarts
-            if spec.kind != "flow" or spec.get("net", "flow1") != "flow1":
-                raise ConfigError(f"schedule.stages.{name}.restarts: only the bootstrap flow net's stage (flow1) "
-                                  f"screens restarts (this stage: {spec.kind}, {spec.get('net')})")
+            _flow1_only(name, spec, "restarts", "screens restarts")
             pair = OmegaConf.is_list(restarts) and len(restarts) == 2 and all(
                 isinstance(v, int) and not isinstance(v, bool) for v in restarts)
             if not pair or not (restarts[0] >= 1 and 1 <= restarts[1] < spec.steps):

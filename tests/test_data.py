@@ -837,6 +837,12 @@ def test_layers_dataset_renders_a_new_pair_for_every_index_and_reads_as_flow_gro
     torch.testing.assert_close(gt["flow2"][0, :, 3, 4], batch["flow"][0, :, 12:16, 16:20].mean((1, 2)))
     with pytest.raises(IndexError):
         layers[-1]
+    # a 3-D sample that carries its flow (an evaluation sample) keeps the flow of its depth and motion
+    scene = SyntheticDataset("synthetic_sun3d", length=2, size=(64, 96), cache_dir=False)
+    both = torch.utils.data.default_collate([scene[0], scene[1]])
+    draws = {k: v for k, v in both.items() if k != "flow"}
+    assert "flow" in both and torch.equal(losses.ground_truth(both)["flow2"].nan_to_num(9.0),
+                                          losses.ground_truth(draws)["flow2"].nan_to_num(9.0))
 
 
 def test_a_lead_source_fills_the_first_fraction_of_the_stage_in_whole_batches():

@@ -181,12 +181,9 @@ def screen_restarts(cfg: DictConfig, chain: DeMoN, stage: StageDir, module: L.Li
     (net_name,) = TRAINED_NETS[stage.name]
     net = getattr(chain, net_name)
     scorer = StageValidation(stage.name, [instantiate(e) for e in cfg.data.val], 0, 0)
-    own = {k: v.clone() for k, v in net.state_dict().items()}
     scores = []
     for i in range(starts):
-        if i == 0:
-            net.load_state_dict(own)
-        else:
+        if i > 0:  # (start 0: the net as the chain holds it)
             with torch.random.fork_rng(devices=[]):
                 torch.manual_seed(int(cfg.seed) * 1_000_003 + i)
                 net.apply(initialise)
