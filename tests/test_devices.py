@@ -141,7 +141,9 @@ def test_evaluation_metrics_on_the_device_match_the_cpu(device):
 def test_a_mixed_precision_training_step_on_the_device_is_close_to_float32(device, precision):
     if execution.precision_problem(precision, device):
         pytest.skip(execution.precision_problem(precision, device))
-    batch = _to(_batch(), device)
+    # four pairs: the gradient of two pairs at this initialisation is ill-conditioned enough that
+    # bf16's rounding alone turns dm1's by up to 0.949 in cosine on some CPUs (0.985 with four)
+    batch = _to(_batch(n=4), device)
     results = {}
     for name in ("32-true", precision):
         torch.manual_seed(4)

@@ -115,11 +115,18 @@ def test_launcher_workers_get_no_store_client():
 def test_two_process_ddp_on_the_cpu_trains_like_one_process(tmp_path):
     """``trainer.devices=2`` on the CPU (gloo): Lightning starts the second process by re-running
     the command; rank 1 only trains, rank 0 tracks, saves and evaluates. Each process takes half of
-    every batch and gradients are averaged, so the stage's weights equal a one-process run's."""
+    every batch and gradients are averaged, so the stage's weights equal a one-process run's.
+
+    One step: Adam's first update is ``lr * g / (|g| + eps)``, so an element whose gradient sits at
+    float32's rounding floor (level 5's at this size: conv over a batch of 1 or of 2 rounds
+    differently, by CPU) moves by a fraction of ``lr``, and over more steps those elements diverge as
+    a chaotic system does. A sample on the wrong rank moves about half of all elements by more than
+    ``lr / 10`` in this one step; the rounding moves at most a few by more than 1e-5."""
     import torch
 
+    lr = 2.5e-4  # flow1's rate in the released schedule that the smoke scale takes
     common = ["schedule.until=flow1", "iterations=0", "eval.max_samples=1", "trainer.accelerator=cpu",
-              "scale.steps.flow1=4"]
+              "scale.steps.flow1=1", f"schedule.stages.flow1.lr={lr}"]
     weights = {}
     for devices in (1, 2):
         tmp = tmp_path / f"devices{devices}"
@@ -134,8 +141,11 @@ def test_two_process_ddp_on_the_cpu_trains_like_one_process(tmp_path):
         (saved,) = (tmp / "cache" / "stages").glob("flow1-*/weights.pt")
         weights[devices] = torch.load(saved, weights_only=True)["flow1"]
     assert weights[1].keys() == weights[2].keys()
-    for name, value in weights[1].items():
-        torch.testing.assert_close(weights[2][name], value, rtol=1e-4, atol=1e-5, msg=name)
+    differences = torch.cat([(weights[2][name] - value).abs().flatten() for name, value in weights[1].items()])
+    print(f"DDP against one process after one step: largest difference {float(differences.max()):.2e}, "
+          f"{int((differences > 1e-5).sum())} of {differences.numel()} elements beyond 1e-5")
+    assert float(differences.max()) < lr / 10
+    assert int((differences > 1e-5).sum()) <= differences.numel() // 1000
 
 
 def test_a_local_sweep_refuses_several_devices_per_job(tmp_path):
