@@ -275,11 +275,33 @@ def test_a_job_that_raises_leaves_its_run_failed(tmp_path):
     (["data=pair_folder", "data.path=/no/pairs"], "data.test[0].path (data.path): /no/pairs: no such file"),
     (["data=tum", "data.root=/no/tum"], "data.test[0].root (data.root): /no/tum: no such file or directory"),
 ])
-def test_bad_configuration_is_one_line_before_any_work(args, message, tmp_path):
+def test_bad_configuration_is_one_line_before_any_work(args, message, tmp_path, monkeypatch, capsys):
+    """In the process: ``python -m demon_lab``'s own entry point, its exit status and its stderr (the
+    process itself, for two of these cases: the next test)."""
+    from demon_lab.__main__ import main
+
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(sys, "argv", ["demon_lab", *smoke_overrides(tmp_path), *args])
+    with pytest.raises(SystemExit) as exited:
+        main()
+    captured = capsys.readouterr()
+    assert exited.value.code == 2, captured.err
+    lines = captured.err.strip().splitlines()
+    assert len(lines) == 1 and message in lines[0], captured.err
+    assert not captured.out
+    assert not (tmp_path / "mlflow.db").exists()  # nothing was recorded
+
+
+@pytest.mark.parametrize("args, message", [
+    (["model.width=0"], "model.width: expected a positive number"),
+    (["-m", "iterations=0,1,-2"], "iterations: expected an integer >= 0, got -2"),
+])
+def test_a_bad_configuration_exits_the_process_with_status_2_and_one_line(args, message, tmp_path):
     result = cli(*smoke_overrides(tmp_path), *args, cwd=tmp_path)
     assert result.returncode == 2, result.stderr
     lines = result.stderr.strip().splitlines()
     assert len(lines) == 1 and message in lines[0], result.stderr
+    assert not result.stdout
     assert not (tmp_path / "mlflow.db").exists()  # nothing was recorded
 
 
@@ -296,9 +318,9 @@ def test_documented_configurations_compose_and_validate(overrides):
 EXPERIMENTS = sorted(p.stem for p in (resources.CONF / "experiment").glob("*.yaml") if p.stem != "released_model")
 """The experiments that run on demon_lab's own data (released_model needs DeMoN's files and weights:
 tests/test_released.py)."""
-SWEPT = [e for e in EXPERIMENTS if e not in ("cpu_recipe", "cpu_design")]
-"""The experiments that declare a sweep (cpu_recipe's and cpu_design's probes are single jobs, the commands of
-demon_lab/studies/cpu_recipe.yaml and cpu_design.yaml, which tests/test_report.py composes)."""
+SWEPT = [e for e in EXPERIMENTS if e not in ("cpu_recipe", "cpu_design", "cpu_motion")]
+"""The experiments that declare a sweep (the probes of cpu_recipe, cpu_design and cpu_motion are single jobs, the
+commands of their study specs in demon_lab/studies/, which tests/test_report.py composes)."""
 
 
 @pytest.mark.parametrize("experiment", SWEPT)
