@@ -25,7 +25,7 @@ from collections.abc import Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
-from demon_lab.filelock import file_lock
+from filelock import FileLock
 
 TAG = "demon_lab."
 log = logging.getLogger(__name__)
@@ -256,7 +256,7 @@ def _store_lock(uri: str) -> Iterator[None]:
     if not uri.startswith(prefix):
         yield
         return
-    with file_lock(uri[len(prefix):] + ".lock"):
+    with FileLock(uri[len(prefix):] + ".lock"):  # (creates the folder)
         yield
 
 

@@ -22,8 +22,7 @@ from pathlib import Path
 from typing import Any
 
 import torch
-
-from demon_lab.filelock import file_lock
+from filelock import FileLock
 
 
 class StageDir:
@@ -46,7 +45,7 @@ class StageDir:
     def lock(self) -> Iterator[None]:
         """Exclusive lock: a second job needing this stage waits, then finds it done."""
         self.path.mkdir(parents=True, exist_ok=True)
-        with file_lock(self.path.parent / f"{self.path.name}.lock"):
+        with FileLock(self.path.parent / f"{self.path.name}.lock"):
             yield
 
     def save(self, state: Mapping[str, Mapping[str, torch.Tensor]]) -> None:
