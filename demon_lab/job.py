@@ -144,7 +144,6 @@ def _train_and_evaluate(cfg: DictConfig, tracker, run_id: str) -> dict[str, Any]
     results = evaluate_test_sets(cfg, chain, refined)
     summary = {r.name: r.summary for r in results}
     tracker.log_metrics(run_id, {f"test/{name}/{k}": v for name, values in summary.items() for k, v in values.items()})
-    _pause_point("metrics_logged")
     if cfg.method == "demon":
         passes = [*range(int(cfg.iterations) + 1), *(["refined"] if refined else [])]
         what = f"{cfg.iterations} iterations{', oracle ' + str(cfg.oracle) if cfg.oracle else ''}"
@@ -178,17 +177,6 @@ def _csv(rows: list[dict[str, Any]]) -> str:
     writer.writeheader()
     writer.writerows(rows)
     return out.getvalue()
-
-
-def _pause_point(name: str) -> None:
-    """A named point where ``DEMON_LAB_PAUSE_AT=name`` holds the job (the robustness tests kill it
-    there: in the middle of its MLflow logging)."""
-    import os
-    import time
-
-    if os.environ.get("DEMON_LAB_PAUSE_AT") == name:
-        log.info("paused at %s", name)
-        time.sleep(3600)
 
 
 def _hydra_output_dir(multirun_only: bool = False) -> Path | None:

@@ -94,9 +94,22 @@ KILL_POINTS = {
     "flow1 training": (["scale.steps.flow1=150", "schedule.until=flow1", "iterations=0"], "flow1-*/last.ckpt"),
     "iterative training": (["scale.steps.iterative=80", "schedule.until=iterative"], "iterative-*/last.ckpt"),
     "evaluation": (["schedule.until=flow1", "iterations=0"], "[demon_lab] evaluating on synthetic_sun3d"),
-    # between the test metrics and the artifacts (DEMON_LAB_PAUSE_AT holds the job there)
+    # between the test metrics and the artifacts (_HOLD_AFTER_METRICS holds the job there)
     "final logging": (["schedule.until=flow1", "iterations=0"], "[demon_lab] paused at metrics_logged"),
 }
+
+_HOLD_AFTER_METRICS = """
+import time
+import demon_lab.tables
+
+def _held(*args, **kwargs):  # the job's first call after logging its test metrics
+    print("[demon_lab] paused at metrics_logged", flush=True)
+    time.sleep(3600)
+
+demon_lab.tables.results_table = _held
+"""
+"""A ``sitecustomize`` module for the job's process: it holds the job between its test metrics and its
+artifacts, where the job builds its results table, without a hook in demon_lab itself."""
 
 
 def _kill_when(args: list[str], cwd: Path, trigger: str) -> None:
@@ -104,7 +117,10 @@ def _kill_when(args: list[str], cwd: Path, trigger: str) -> None:
     text in a line of its output) appears."""
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
     if trigger.endswith("paused at metrics_logged"):
-        env["DEMON_LAB_PAUSE_AT"] = "metrics_logged"
+        hook = cwd / "hold_after_metrics"
+        hook.mkdir(exist_ok=True)
+        (hook / "sitecustomize.py").write_text(_HOLD_AFTER_METRICS)
+        env["PYTHONPATH"] = os.pathsep.join(p for p in (str(hook), env.get("PYTHONPATH")) if p)
     proc = subprocess.Popen([sys.executable, "-m", "demon_lab", *args], cwd=cwd, env=env, text=True,
                             stdout=subprocess.PIPE, stderr=subprocess.DEVNULL)
     assert proc.stdout is not None
