@@ -120,8 +120,9 @@ def test_two_process_ddp_on_the_cpu_trains_like_one_process(tmp_path):
     One step: Adam's first update is ``lr * g / (|g| + eps)``, so an element whose gradient sits at
     float32's rounding floor (level 5's at this size: conv over a batch of 1 or of 2 rounds
     differently, by CPU) moves by a fraction of ``lr``, and over more steps those elements diverge as
-    a chaotic system does. A sample on the wrong rank moves about half of all elements by more than
-    ``lr / 10`` in this one step; the rounding moves at most a few by more than 1e-5."""
+    a chaotic system does. Training on half the batch (one sample instead of two) moves about half of
+    all elements by more than ``lr / 10`` in this one step; the rounding moves at most a few by more
+    than 1e-5."""
     import torch
 
     lr = 2.5e-4  # flow1's rate in the released schedule that the smoke scale takes
