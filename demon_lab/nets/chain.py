@@ -27,6 +27,7 @@ from demon_lab.execution import float32
 from demon_lab.nets.blocks import check_correlation, check_size, check_variant
 from demon_lab.nets.depth_motion_net import DepthMotionNet
 from demon_lab.nets.flow_net import FlowNet
+from demon_lab.nets.prior import check_prior
 from demon_lab.nets.refine_net import RefineNet
 
 ORACLES = (None, "flow", "depth_motion")
@@ -140,10 +141,12 @@ class DeMoN(nn.Module):
     (docs/reference.md §11: DeMoN's ``warp2d``, no clipping, no replacement of non-finite
     values), for its converted weights (``python -m demon_lab.convert``). ``correlation``:
     ``(max_displacement, stride)`` of a correlation front in both flow nets (:class:`FlowNet`;
-    not DeMoN's design), or None."""
+    not DeMoN's design), or None. ``flow1_prior``: ``"dis"`` gives the bootstrap flow net a
+    classical prior flow (:mod:`demon_lab.nets.prior`; not DeMoN's design), or None."""
 
     def __init__(self, variant: str = "v1", width: float = 1.0, size: tuple[int, int] = (192, 256),
-                 compat: str | None = None, correlation: tuple[int, int] | None = None):
+                 compat: str | None = None, correlation: tuple[int, int] | None = None,
+                 flow1_prior: str | None = None):
         super().__init__()
         check_variant(variant)
         check_size(*size)
@@ -156,10 +159,14 @@ class DeMoN(nn.Module):
         if compat == "demon_original" and correlation is not None:
             raise ValueError("compat='demon_original' reproduces DeMoN's released graph, which has no "
                              "correlation front")
+        if compat == "demon_original" and flow1_prior is not None:
+            raise ValueError("compat='demon_original' reproduces DeMoN's released graph, whose bootstrap flow "
+                             "net has no prior flow")
         self.variant, self.width, self.size, self.compat = variant, width, tuple(size), compat
         self.correlation = None if correlation is None else check_correlation(correlation)
         kw = dict(variant=variant, width=width, size=self.size)
-        self.flow1 = FlowNet(iterative=False, correlation=self.correlation, **kw)
+        self.flow1_prior = check_prior(flow1_prior)
+        self.flow1 = FlowNet(iterative=False, correlation=self.correlation, prior=self.flow1_prior, **kw)
         self.dm1 = DepthMotionNet(iterative=False, **kw)
         self.flow2 = FlowNet(iterative=True, correlation=self.correlation, **kw)
         self.dm2 = DepthMotionNet(iterative=True, **kw)

@@ -5,8 +5,10 @@
 from __future__ import annotations
 
 import torch
+import torch.nn.functional as F
 from torch import nn
 
+from demon_lab.geometry import warp_image
 from demon_lab.nets.blocks import (
     Conv,
     ConvPair,
@@ -20,6 +22,7 @@ from demon_lab.nets.blocks import (
     lrelu,
     scaled,
 )
+from demon_lab.nets.prior import check_prior, dis_prior
 
 
 class Dense5(nn.Module):
@@ -54,6 +57,10 @@ class FlowNet(nn.Module):
             feature maps at level 2 over displacements ``-max_displacement .. max_displacement``
             in steps of ``stride`` (level-2 pixels), next to a 1x1 projection of image 1's features.
             None: DeMoN's net, both images stacked at the input.
+        prior: ``"dis"``: a classical prior flow of the pair (:mod:`demon_lab.nets.prior`; not
+            DeMoN's design) enters at level 2 as the iterative net's prior does (5 extra inputs:
+            image 2 warped with the prior, the prior), and the net predicts a correction: the
+            prior is added to its flow at levels 5 and 2. Bootstrap net only. None: no prior.
 
     ``forward(pair, extra=None)`` with ``pair`` (B, 6, H, W) = [image 1, image 2] returns
     ``(flowconf5, flowconf2)``: (B, 4, H/32, W/32) and (B, 4, H/4, W/4), channels
@@ -61,10 +68,13 @@ class FlowNet(nn.Module):
     """
 
     def __init__(self, iterative: bool = False, variant: str = "v1", width: float = 1.0,
-                 size: tuple[int, int] = (192, 256), correlation: tuple[int, int] | None = None):
+                 size: tuple[int, int] = (192, 256), correlation: tuple[int, int] | None = None,
+                 prior: str | None = None):
         super().__init__()
         check_variant(variant)
-        self.iterative, self.variant = iterative, variant
+        if check_prior(prior) and iterative:
+            raise ValueError("prior: the iterative flow net has its prior from the previous depth and motion")
+        self.iterative, self.variant, self.prior = iterative, variant, prior
         self.correlation = None if correlation is None else check_correlation(correlation)
         c = lambda n: scaled(n, width)  # noqa: E731
         v1 = variant == "v1"
@@ -78,6 +88,9 @@ class FlowNet(nn.Module):
             level2 = c(32) + (2 * (max_displacement // stride) + 1) ** 2
         if iterative:
             self.conv2_extra = ConvPair(9, c(32), 3, 1, variant)
+            level2 += c(32)
+        if prior:
+            self.conv2_prior = ConvPair(5, c(32), 3, 1, variant)
             level2 += c(32)
         c5 = add_encoder_levels(self, width, variant, conv5_kernel=5, conv2_1_in=level2)
         if not v1:
@@ -102,6 +115,11 @@ class FlowNet(nn.Module):
             if extra is None:
                 raise ValueError("extra: the iterative flow net needs its 9 extra input channels")
             x = torch.cat([x, self.conv2_extra(extra)], 1)
+        if self.prior:
+            with torch.no_grad():
+                prior2 = dis_prior(pair, level=2)
+                warped = warp_image(F.avg_pool2d(pair[:, 3:].float(), 4), prior2)
+            x = torch.cat([x, self.conv2_prior(torch.cat([warped, prior2], 1).to(x.dtype))], 1)
         conv2_1 = self.conv2_1(x)
         conv3_1 = self.conv3_1(self.conv3(conv2_1))
         conv4_1 = self.conv4_1(self.conv4(conv3_1))
@@ -112,4 +130,9 @@ class FlowNet(nn.Module):
         r4 = torch.cat([self.refine4(conv5_1), conv4_1, self.upsample_flow5to4(flowconf5)], 1)
         r3 = torch.cat([self.refine3(r4), conv3_1], 1)
         r2 = torch.cat([self.refine2(r3), conv2_1], 1)
-        return flowconf5.float(), self.predict_flow2(r2).float()  # float32 out, also under autocast
+        flowconf5, flowconf2 = flowconf5.float(), self.predict_flow2(r2).float()  # float32, also under autocast
+        if self.prior:
+            prior5 = F.avg_pool2d(prior2, 8)
+            flowconf5 = torch.cat([flowconf5[:, :2] + prior5, flowconf5[:, 2:]], 1)
+            flowconf2 = torch.cat([flowconf2[:, :2] + prior2, flowconf2[:, 2:]], 1)
+        return flowconf5, flowconf2

@@ -72,7 +72,7 @@ def build_chain(cfg: DictConfig) -> DeMoN:
     ``model.weights`` loaded (:func:`demon_lab.weights.load_weights`); its nets in channels-last
     layout and compiled when ``model.channels_last`` / ``model.compile`` ask for it."""
     chain = DeMoN(cfg.model.variant, float(cfg.model.width), tuple(cfg.data.size), cfg.model.get("compat"),
-                  correlation_of(cfg.model))
+                  correlation_of(cfg.model), cfg.model.get("flow1_prior"))
     if cfg.model.get("weights"):
         from demon_lab.weights import load_weights
 
