@@ -491,3 +491,61 @@ def test_a_correlation_front_changes_only_the_flow_nets_front():
         DeMoN("v1", 0.25, (64, 64), compat="demon_original", correlation=(4, 1))
     with pytest.raises(ValueError, match=r"correlation: expected \[max_displacement, stride\]"):
         DeMoN("v1", 0.25, (64, 64), correlation=(2, 4))
+
+
+def _textured_pair(shift_px: tuple[int, int], size=(96, 128), seed=3) -> torch.Tensor:
+    """A smooth random texture and the same texture moved by ``shift_px`` (x, y) pixels, as one
+    (1, 6, H, W) pair in [-0.5, 0.5]: the true flow is ``shift_px`` everywhere inside the image."""
+    g = torch.Generator().manual_seed(seed)
+    h, w = size
+    big = torch.rand(1, 3, h // 4 + 8, w // 4 + 8, generator=g)
+    texture = torch.nn.functional.interpolate(big, scale_factor=4, mode="bicubic", align_corners=False) - 0.5
+    dx, dy = shift_px
+    image1 = texture[:, :, 16:16 + h, 16:16 + w]
+    image2 = texture[:, :, 16 - dy:16 - dy + h, 16 - dx:16 - dx + w]  # image2(x + d) = image1(x)
+    return torch.cat([image1, image2], 1).clamp(-0.5, 0.5)
+
+
+def test_the_dis_prior_is_the_pairs_flow_normalised_at_level_2():
+    from demon_lab.nets.prior import dis_prior
+
+    pair = _textured_pair((6, -4))
+    prior = dis_prior(pair)
+    assert prior.shape == (1, 2, 24, 32) and prior.dtype == torch.float32
+    inner = prior[0, :, 4:-4, 4:-4]  # away from the borders, where part of the texture leaves the image
+    assert torch.allclose(inner[0].median(), torch.tensor(6 / 128), atol=0.25 / 128)
+    assert torch.allclose(inner[1].median(), torch.tensor(-4 / 96), atol=0.25 / 96)
+    assert dis_prior(pair, level=0).shape == (1, 2, 96, 128)
+
+
+def test_the_bootstrap_flow_net_with_a_prior_predicts_a_correction_of_it():
+    from demon_lab.nets.prior import dis_prior
+
+    torch.manual_seed(0)
+    chain = DeMoN("v1", 0.25, (96, 128), flow1_prior="dis")
+    plain = DeMoN("v1", 0.25, (96, 128))
+    net = chain.flow1
+    assert net.conv2_1.y.conv.in_channels == plain.flow1.conv2_1.y.conv.in_channels + 8  # + c(32) from 5 inputs
+    assert net.conv2_prior.y.conv.in_channels == 5 and chain.flow2.prior is None
+    pair = _textured_pair((6, -4))
+    prior = dis_prior(pair)
+    with torch.no_grad():
+        flow2 = net(pair)[1]
+        for head in (net.predict_flow2, net.predict_flow5):  # a net that predicts no correction
+            last = [m for m in head.modules() if isinstance(m, torch.nn.Conv2d)][-1]
+            last.weight.zero_()
+            last.bias.zero_()
+        zero5, zero2 = net(pair)
+    assert not torch.allclose(flow2[:, :2], prior)
+    assert torch.allclose(zero2[:, :2], prior) and torch.allclose(zero2[:, 2:], torch.zeros_like(zero2[:, 2:]))
+    assert torch.allclose(zero5[:, :2], torch.nn.functional.avg_pool2d(prior, 8), atol=1e-7)
+    # the net reads the prior: a pair whose DIS flow differs gives another output with the same weights
+    with torch.no_grad():
+        other = net(_textured_pair((-3, 2)))[1]
+    assert not torch.allclose(other[:, :2], zero2[:, :2])
+    with pytest.raises(ValueError, match="whose bootstrap flow net has no prior flow"):
+        DeMoN("v1", 0.25, (64, 64), compat="demon_original", flow1_prior="dis")
+    with pytest.raises(ValueError, match="flow1_prior: expected one of"):
+        DeMoN("v1", 0.25, (64, 64), flow1_prior="flownet")
+    with pytest.raises(ValueError, match="the iterative flow net has its prior"):
+        FlowNet(iterative=True, width=0.25, size=(64, 64), prior="dis")

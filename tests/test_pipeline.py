@@ -266,6 +266,9 @@ def test_a_job_that_raises_leaves_its_run_failed(tmp_path):
     (["model.correlation=[2,8]"], "model.correlation: expected [max_displacement, stride], positive integers"),
     (["model.correlation=[4,1]", "model.compat=demon_original"],
      "model.correlation: compat=demon_original reproduces DeMoN's released graph, which has no correlation front"),
+    (["model.flow1_prior=flownet"], "model.flow1_prior: expected one of null, dis, got 'flownet'"),
+    (["model.flow1_prior=dis", "model.compat=demon_original"],
+     "model.flow1_prior: compat=demon_original reproduces DeMoN's released graph, whose bootstrap flow net has no"),
     (["+schedule.stages.dm1.layers_first=0.5"], "schedule.stages.dm1.layers_first: only the bootstrap flow net's"),
     (["+schedule.stages.flow1.layers_first=0"], "schedule.stages.flow1.layers_first: expected a fraction of the stage"),
     (["+schedule.stages.flow1.restarts=[3,0]"], "schedule.stages.flow1.restarts: expected [starts, steps]"),
@@ -391,6 +394,22 @@ def test_a_correlation_front_keys_every_stage_and_the_run_and_is_absent_by_defau
     assert run_key(plain) != run_key(corr)
     if scale != "paper":  # (the paper-scale chain is 46 M parameters: the smaller ones show the same)
         assert build_chain(corr).flow1.correlation == (8, 2) and build_chain(plain).flow1.correlation is None
+
+
+@pytest.mark.parametrize("scale", ["smoke", "cpu"])
+def test_a_prior_flow_keys_every_stage_and_the_run_and_is_absent_by_default(scale):
+    import demon_lab.config  # noqa: F401  (registers the resolvers, as the app does)
+    from demon_lab.identity import run_key, semantic_config
+    from demon_lab.stages.schedule import build_chain, stage_dirs
+
+    with initialize_config_dir(CONF, version_base="1.3"):
+        plain = compose("config", [f"scale={scale}"])
+        prior = compose("config", [f"scale={scale}", "model.flow1_prior=dis"])
+    assert plain.model.flow1_prior is None and "flow1_prior" not in semantic_config(plain)["model"]
+    assert all(a.key != b.key for a, b in zip(stage_dirs(plain), stage_dirs(prior), strict=True))
+    assert run_key(plain) != run_key(prior)
+    chain = build_chain(prior)
+    assert chain.flow1.prior == "dis" and chain.flow2.prior is None and build_chain(plain).flow1.prior is None
 
 
 def test_train_stage_hands_the_probe_options_to_their_stages(tmp_path, monkeypatch):
