@@ -150,8 +150,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("prefix", help="the checkpoint's prefix (e.g. weights/demon_original) or one of its files")
     parser.add_argument("out", type=Path, help="the state dict to write (e.g. demon_original.pt)")
     args = parser.parse_args(argv)
+    from demon_lab.identity import content_hash
     from demon_lab.stages.cache import atomic_torch_save
-    from demon_lab.weights import content_hash
 
     try:
         result = convert_checkpoint(args.prefix)

@@ -278,14 +278,14 @@ def paper_schedule() -> dict[str, int]:
 
 
 def part_data(check: Check, dims: Dims, rates: dict[tuple, float]) -> None:
-    from demon_lab import bench
+    from demon_lab.data import throughput
 
     fastest = max(rates.values()) if rates else None
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / "demon_layout.h5"
-        bench.write_demon_layout_file(path, 3 if check.dry_run else 24, dims.size)
-        workers = [0, 1] if check.dry_run else bench.worker_counts()
-        got = bench.demon_h5_rates(path, workers, dims.batch, batches=2 if check.dry_run else 6, size=dims.size,
+        throughput.write_demon_layout_file(path, 3 if check.dry_run else 24, dims.size)
+        workers = [0, 1] if check.dry_run else throughput.worker_counts()
+        got = throughput.demon_h5_rates(path, workers, dims.batch, batches=2 if check.dry_run else 6, size=dims.size,
                                    pin_memory=check.device.type == "cuda")
     for w, r in got.items():
         fed = r / dims.batch / 4

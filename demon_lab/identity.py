@@ -10,7 +10,9 @@ them:
   chained through the keys of its upstream stages: ``demon_lab.stages.schedule.describe_stage``).
 - sweep key (:func:`sweep_key`): a multirun's experiment and its result-changing overrides; the
   same sweep re-issued continues its MLflow parent run.
-- data key (:func:`data_key`): the rendering of a synthetic preset (its cache folder).
+
+A rendered synthetic data set's cache folder has a key of its own, from the generator
+(:func:`demon_lab.data.synthetic.render_key`), so that the data layer needs nothing above it.
 
 :data:`NON_SEMANTIC` also decides the job's output folder: ``hydra.job.config.override_dirname
 .exclude_keys`` in ``conf/config.yaml`` lists exactly the non-semantic keys a user can override
@@ -21,7 +23,9 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 from collections.abc import Iterable, Mapping
+from pathlib import Path
 from typing import Any
 
 from demon_lab.execution import normalize_precision
@@ -84,8 +88,6 @@ def model_identity(model: dict[str, Any]) -> dict[str, Any]:
     model = {k: v for k, v in model.items() if not (k in optional and v is None) and k not in EXECUTION_KEYS}
     if not model.get("weights"):
         return model
-    from demon_lab.weights import describe
-
     return {**model, "weights": describe(model["weights"])}
 
 
@@ -141,6 +143,23 @@ def _normal_override(override: str) -> str:
     return override
 
 
-def data_key(description: Mapping[str, Any]) -> str:
-    """A synthetic data set's rendering (its preset, size, supersampling and generator version)."""
-    return digest(description, algorithm="sha1")
+_hashes: dict[tuple[str, int, int], str] = {}
+
+
+def content_hash(path: str | Path) -> str:
+    """The sha256 of a file's bytes (cached per path, size and modification time)."""
+    path = Path(path)
+    stat = path.stat()
+    key = (str(path.resolve()), stat.st_size, stat.st_mtime_ns)
+    if key not in _hashes:
+        h = hashlib.sha256()
+        with open(path, "rb") as f:
+            for chunk in iter(lambda: f.read(1 << 22), b""):
+                h.update(chunk)
+        _hashes[key] = h.hexdigest()
+    return _hashes[key]
+
+
+def describe(path: str | Path) -> str:
+    """``sha256:<hex>`` of a weights file: how keys name it."""
+    return "sha256:" + content_hash(os.fspath(path))

@@ -32,7 +32,7 @@ import sys
 import tempfile
 from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Any, NamedTuple
+from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -40,6 +40,7 @@ import yaml
 
 from demon_lab.metrics import UNITS_NOTE, column
 from demon_lab.resources import STUDIES
+from demon_lab.tables import Cell, cell, has_values, paper_cells
 from demon_lab.tracking import TAG, metric_name, process_tracking_uri, version_tags
 
 FIGURES = ("iterations", "pixel_histograms", "motion_distributions", "qualitative", "time_to_accuracy")
@@ -103,24 +104,6 @@ def paper_numbers(path: Path = STUDIES / "paper_numbers.csv") -> list[dict[str, 
     # and NaN, and paper_cells compares and reads them as the CSV spells them.
     with open(path, newline="") as f:
         return list(csv.DictReader(f))
-
-
-def paper_cells(rows: Sequence[Mapping[str, str]], ref: Mapping[str, Any] | None, dataset: str | None,
-                columns: Sequence[str]) -> dict[str, float]:
-    """The paper's values for one row of a table on one paper dataset (merged over its CSV rows)."""
-    if not ref or not dataset:
-        return {}
-    wanted = set(ref.get("rows") or [])
-    out: dict[str, float] = {}
-    for r in rows:
-        if (r["table"] == str(ref["table"]) and r["dataset"] == dataset and r["method"] == ref["method"]
-                and (not wanted or r["row"] in wanted)):
-            for c in columns:
-                paper = column(c).paper
-                text = r.get(paper, "") if paper else ""
-                if text not in ("", None) and c not in out:
-                    out[c] = float(text)
-    return out
 
 
 # ----------------------------------------------------------------------------- runs
@@ -224,31 +207,6 @@ def aggregate(values: pd.DataFrame, by: Sequence[str] = CELL_KEYS) -> pd.DataFra
     n = cells["n"]
     cells["ci95"] = t.ppf(0.975, (n - 1).where(n > 1)) * cells["std"] / np.sqrt(n)
     return cells
-
-
-class Cell(NamedTuple):
-    """One aggregated cell as plain Python numbers (``csv`` writes numpy floats as ``np.float64(...)``)."""
-
-    mean: float = math.nan
-    std: float = math.nan
-    ci95: float = math.nan
-    n: int = 0
-    values: tuple[float, ...] = ()
-
-
-def cell(result: Mapping[str, Any], table: str, dataset: str, row: str, col: str) -> Cell:
-    """A cell of ``build``'s result; an empty one (n = 0) where no counted run logged a finite value."""
-    cells: pd.DataFrame = result["cells"]
-    key = (table, dataset, row, col)
-    if key not in cells.index:
-        return Cell()
-    c = cells.loc[key]
-    return Cell(float(c["mean"]), float(c["std"]), float(c["ci95"]), int(c["n"]), tuple(map(float, c["values"])))
-
-
-def has_values(result: Mapping[str, Any], table: str, dataset: str) -> bool:
-    index = result["cells"].index
-    return bool(((index.get_level_values("table") == table) & (index.get_level_values("dataset") == dataset)).any())
 
 
 def build(spec: Mapping[str, Any], runs: pd.DataFrame) -> dict[str, Any]:

@@ -22,7 +22,7 @@ import numpy as np
 import pandas as pd
 
 from demon_lab.metrics import column
-from demon_lab.report import cell, has_values, paper_cells
+from demon_lab.tables import cell, has_values, paper_cells
 from demon_lab.visualize import safe_name
 
 FIGURE_KINDS = ("iterations", "pixel_errors", "motion", "qualitative", "time_to_accuracy")

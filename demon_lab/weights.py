@@ -10,33 +10,32 @@ nets (flow1, dm1, flow2, dm2, refine_net); each net present is loaded strictly.
 
 from __future__ import annotations
 
-import hashlib
-import os
 from pathlib import Path
+from typing import Any
 
 import torch
 
-from demon_lab.stages.cache import CheckpointError, load_checkpoint
+from demon_lab.identity import content_hash, describe
+
+__all__ = ["NETS", "CheckpointError", "check_fits", "content_hash", "describe", "load_checkpoint", "load_weights",
+           "misfit", "read_nets"]
 
 NETS = ("flow1", "dm1", "flow2", "dm2", "refine_net")
 RELEASED_HINT = ("DeMoN's converted weights are a v1 chain of width 1.0 for 256x192 inputs: "
                  "scale=paper, or model.width=1.0 data.size=[192,256]")
 
-_hashes: dict[tuple[str, int, int], str] = {}
+class CheckpointError(RuntimeError):
+    """A stage checkpoint that cannot be used (unreadable, truncated, another architecture)."""
 
 
-def content_hash(path: str | Path) -> str:
-    """The sha256 of a file's bytes (cached per path, size and modification time)."""
-    path = Path(path)
-    stat = path.stat()
-    key = (str(path.resolve()), stat.st_size, stat.st_mtime_ns)
-    if key not in _hashes:
-        h = hashlib.sha256()
-        with open(path, "rb") as f:
-            for chunk in iter(lambda: f.read(1 << 22), b""):
-                h.update(chunk)
-        _hashes[key] = h.hexdigest()
-    return _hashes[key]
+def load_checkpoint(path: Path | str) -> Any:
+    """``torch.load(weights_only=True)``; any failure is one CheckpointError naming the file."""
+    try:
+        return torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as e:
+        reason = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+        raise CheckpointError(f"checkpoint {path} cannot be read ({reason[:200]}); delete it to retrain "
+                              f"that stage") from None
 
 
 def read_nets(path: str | Path, mmap: bool = False) -> dict[str, dict[str, torch.Tensor]]:
@@ -113,8 +112,3 @@ def load_weights(chain: torch.nn.Module, path: str | Path) -> list[str]:
     for net, weights in nets.items():
         getattr(chain, net).load_state_dict(weights, strict=True)
     return [n for n in NETS if n in nets]
-
-
-def describe(path: str | Path) -> str:
-    """``sha256:<hex>`` of a weights file: how keys name it."""
-    return "sha256:" + content_hash(os.fspath(path))

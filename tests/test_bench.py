@@ -8,6 +8,7 @@ import torch
 
 from demon_lab import bench
 from demon_lab import geometry as geo
+from demon_lab.data import throughput
 
 
 def test_write_section_replaces_only_its_own_section(tmp_path):
@@ -42,19 +43,19 @@ def test_demon_h5_rates_serve_training_draws_per_worker_count(tmp_path):
     from demon_lab.data.datasets import DemonH5Dataset
 
     path = tmp_path / "layout.h5"
-    bench.write_demon_layout_file(path, 3, (64, 96))
+    throughput.write_demon_layout_file(path, 3, (64, 96))
     ds = DemonH5Dataset(path, test_phase=False, size=(64, 96))
     assert len(ds) == 6  # 3 scenes, both orders of their pair
     sample = ds.load(0)
     assert sample["image1"].shape == (3, 64, 96) and torch.isfinite(sample["motion"]).all()
     assert float(geo.valid_depth(sample["inv_depth"]).float().mean()) > 0.5
-    rates = bench.demon_h5_rates(path, [0, 1], batch_size=2, batches=2, size=(64, 96))
+    rates = throughput.demon_h5_rates(path, [0, 1], batch_size=2, batches=2, size=(64, 96))
     assert set(rates) == {0, 1} and all(r > 0 for r in rates.values())
-    assert bench.worker_counts()[0] == 0
+    assert throughput.worker_counts()[0] == 0
 
 
 def test_demon_h5_pair_times_a_draw_and_an_evaluation_sample(tmp_path):
     path = tmp_path / "layout.h5"
-    bench.write_demon_layout_file(path, 2, (64, 96))
-    draw, evaluation = bench.demon_h5_pair_ms(path, pairs=4, size=(64, 96))
+    throughput.write_demon_layout_file(path, 2, (64, 96))
+    draw, evaluation = throughput.demon_h5_pair_ms(path, pairs=4, size=(64, 96))
     assert draw > 0 and evaluation > 0

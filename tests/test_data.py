@@ -762,8 +762,8 @@ def test_a_training_draw_of_demon_h5_skips_the_derived_maps_and_keeps_every_valu
     """A training draw loads without flow, normals and masks (half its time) and gives, field for
     field and bit for bit, what the full sample gives after its draw drops them; also when the
     pair is resampled to another size."""
-    from demon_lab.bench import write_demon_layout_file
     from demon_lab.data.datasets import TRAINING_KEYS
+    from demon_lab.data.throughput import write_demon_layout_file
 
     path = tmp_path / "layout.h5"
     write_demon_layout_file(path, 2, (96, 128))

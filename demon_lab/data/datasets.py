@@ -26,8 +26,7 @@ import torch
 from demon_lab.data import sample as smp
 from demon_lab.data import synthetic
 from demon_lab.data.readers import demon_h5, middlebury, pair_folder, tum
-from demon_lab.data.synthetic import GENERATOR_VERSION
-from demon_lab.identity import data_key
+from demon_lab.data.synthetic import GENERATOR_VERSION, render_key
 
 SPLIT_SEEDS = {"train": 0, "val": 10_000_000, "test": 20_000_000}
 """Synthetic samples of split S use seeds SPLIT_SEEDS[S] + index: disjoint ranges."""
@@ -169,7 +168,7 @@ class SyntheticDataset(PairDataset):
         self.split, self.length, self.supersample = split, int(length), int(supersample)
         self.render_size = self.size  # rendered directly at the target size and intrinsics
         self.fixed_intrinsics = False
-        self.cache_key = data_key({"preset": dataclasses.asdict(self.preset), "size": self.render_size,
+        self.cache_key = render_key({"preset": dataclasses.asdict(self.preset), "size": self.render_size,
                                    "supersample": self.supersample, "version": GENERATOR_VERSION})
         if cache_dir is False:
             self.cache = None

@@ -25,7 +25,11 @@ any machine, in any process (tested across processes).
 from __future__ import annotations
 
 import dataclasses
+import hashlib
+import json
 import math
+from collections.abc import Mapping
+from typing import Any
 
 import numpy as np
 
@@ -40,6 +44,13 @@ GENERATOR_VERSION = 6
 5: textures are mip-mapped to each pixel's footprint (before, a tile of 256 texels could cover 10
 px: the views aliased differently), tiles span 0.6-1.5 camera distances (before 0.5-3 m in every
 preset: tens of repeats), procedural tiles and stripes take a colour per cell (before: periodic)."""
+
+
+def render_key(description: Mapping[str, Any]) -> str:
+    """The cache folder key of a preset's rendering: the first 16 hex digits of the sha1 of its
+    description (preset, size, supersampling, :data:`GENERATOR_VERSION`) as sorted JSON."""
+    blob = json.dumps(dict(description), sort_keys=True, default=str)
+    return hashlib.sha1(blob.encode()).hexdigest()[:16]
 
 
 @dataclasses.dataclass(frozen=True)

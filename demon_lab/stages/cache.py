@@ -24,6 +24,10 @@ from typing import Any
 import torch
 from filelock import FileLock
 
+from demon_lab.weights import CheckpointError, load_checkpoint
+
+__all__ = ["CheckpointError", "StageDir", "atomic_checkpoint_io", "atomic_torch_save", "load_checkpoint"]
+
 
 class StageDir:
     def __init__(self, root: Path, name: str, key: str, description: Mapping[str, Any]):
@@ -72,20 +76,6 @@ def atomic_torch_save(obj: Any, path: Path | str) -> None:
     finally:
         if tmp.exists():
             tmp.unlink()
-
-
-class CheckpointError(RuntimeError):
-    """A stage checkpoint that cannot be used (unreadable, truncated, another architecture)."""
-
-
-def load_checkpoint(path: Path | str) -> Any:
-    """``torch.load(weights_only=True)``; any failure is one CheckpointError naming the file."""
-    try:
-        return torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as e:
-        reason = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
-        raise CheckpointError(f"checkpoint {path} cannot be read ({reason[:200]}); delete it to retrain "
-                              f"that stage") from None
 
 
 def atomic_checkpoint_io():
