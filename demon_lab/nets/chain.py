@@ -117,9 +117,9 @@ def depth_motion_net_inputs(image2_2: torch.Tensor, flow: torch.Tensor, conf: to
     """The depth-motion net's extra channels (stop-gradient): image 2 warped with the flow, the
     flow and its confidence, and (iterative net) the inverse depth triangulated from the flow with
     the previous motion, clipped to [0, 50] as v2 does; non-finite values set to 0. demon_lab
-    clips for v1 too: it trains v1 from scratch, and an untrained flow net's triangulated inverse
-    depth reaches the thousands (measured: max 1107, 99th percentile 28 on the cpu-scale test
-    scenes), which destabilises dm2. ``compat="demon_original"``: what
+    clips for v1 too, because it trains v1 from scratch and an untrained flow net's triangulated
+    inverse depth is unbounded (docs/cpu_scale.md, "The triangulated depth is clipped for v1 too").
+    ``compat="demon_original"``: what
     ``depthmotion_block_demon_original`` feeds its net, i.e. DeMoN's ``warp2d``, no clipping and
     the flow and confidence as they are."""
     with torch.no_grad():

@@ -27,10 +27,10 @@ class FlowStage(StageModule):
     third; the level-5 losses fade out over it (DeMoN's `training/v2/training.py`; docs/reference.md §4).
 
     ``sig_start`` (a fraction of the stage, default 0 as DeMoN; 1: never) holds the sig weights at 0 until
-    then and starts their ramp there. A short schedule needs it: near zero flow the sig term's
-    gradient is ~55-250x the flow term's (11-18x near the ground truth; see the test
-    ``test_flow_sig_gradient_swamps_the_flow_term_near_zero_flow``), and a stage of 1/400 of
-    DeMoN's length gives the net ~830 steps instead of ~333,000 to find correspondence first.
+    then and starts their ramp there: near zero flow, where an untrained net starts, the sig terms'
+    gradient dominates the flow term's, so a stage far shorter than DeMoN's needs the net to find
+    correspondence before they start (docs/cpu_scale.md, "The flow stages train without their sig
+    terms").
 
     ``level5_fade`` (a fraction of the stage, default DeMoN's 1/3) is how long the level-5 terms take
     to fade out: an option for probes of a short schedule (docs/cpu_scale.md; fading them over the
