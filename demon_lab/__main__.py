@@ -54,7 +54,7 @@ def check(args: list[str]) -> str | None:
     from omegaconf.errors import OmegaConfBaseException
 
     from demon_lab.config import ConfigError, drop_missing_sources
-    from demon_lab.stages.training import processes_launched_outside, world_size
+    from demon_lab.execution import processes_launched_outside, world_size
     from demon_lab.validate import validate
 
     with initialize_config_dir(CONF, version_base="1.3"):

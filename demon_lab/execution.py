@@ -224,3 +224,30 @@ def peak_memory(device: torch.device) -> Iterator[dict[str, float]]:
     yield out
     if device.type == "cuda":
         out["peak_gib"] = torch.cuda.max_memory_allocated(device) / 2**30
+
+
+def world_size(cfg: Any) -> int:
+    """The processes of a job: ``trainer.devices x trainer.num_nodes``."""
+    return int(cfg.trainer.devices) * int(cfg.trainer.num_nodes)
+
+
+def global_rank(cfg: Any) -> int:
+    """This process's rank in a multi-process (DDP) job: torchrun's RANK, SLURM's task id under
+    srun/submitit, or, in a process that Lightning's launcher started for a local multi-device run,
+    NODE_RANK x devices + LOCAL_RANK; 0 for a single process."""
+    import os
+
+    for var in ("RANK", "SLURM_PROCID"):
+        if os.environ.get(var, "").isdigit():
+            return int(os.environ[var])
+    if os.environ.get("LOCAL_RANK", "").isdigit():
+        node = os.environ.get("NODE_RANK", "0")
+        return (int(node) if node.isdigit() else 0) * int(cfg.trainer.devices) + int(os.environ["LOCAL_RANK"])
+    return 0
+
+
+def processes_launched_outside() -> bool:
+    """True when torchrun or SLURM started this job's processes (Lightning then spawns none)."""
+    import os
+
+    return any(os.environ.get(var, "").isdigit() for var in ("RANK", "SLURM_PROCID", "LOCAL_RANK"))

@@ -54,7 +54,8 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     if cfg.get("threads") is not None:
         set_threads(int(cfg.threads))
     if cfg.method == "demon":
-        from demon_lab.stages.training import global_rank, prepare_chain, world_size
+        from demon_lab.execution import global_rank, world_size
+        from demon_lab.stages.training import prepare_chain
 
         if world_size(cfg) > 1 and global_rank(cfg) != 0:  # a DDP worker: trains; rank 0 tracks and evaluates
             prepare_chain(cfg, None, progress=False)
@@ -245,7 +246,7 @@ def main_task(cfg: DictConfig) -> None:
         marker.unlink(missing_ok=True)
     server = None
     try:
-        from demon_lab.stages.training import global_rank
+        from demon_lab.execution import global_rank
 
         if cfg.tracking.get("server") and global_rank(cfg) == 0:  # DDP workers only train
             from demon_lab.tracking import LocalServer

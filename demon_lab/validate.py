@@ -19,8 +19,7 @@ from demon_lab.baselines.methods import METHODS as BASELINES
 from demon_lab.config import ConfigError
 from demon_lab.losses import check_weights
 from demon_lab.nets.chain import ORACLES
-from demon_lab.stages.base import LR_SCHEDULES
-from demon_lab.stages.modules import STAGE_KINDS
+from demon_lab.stages.schedule import LR_SCHEDULES, STAGE_KIND_NAMES
 
 STAGE_ORACLES = {"flow": (None, "depth_motion"), "depth_motion": (None, "flow"), "iterative": (None,),
                  "refine": (None,)}
@@ -248,7 +247,7 @@ def validate(cfg: DictConfig, here: bool = True) -> None:
                           f"(the iterative nets flow2 and dm2 are not trained), got {cfg.iterations}")
     for name in stages:
         spec = cfg.schedule.stages[name]
-        _choice(f"schedule.stages.{name}.kind", spec.kind, tuple(STAGE_KINDS))
+        _choice(f"schedule.stages.{name}.kind", spec.kind, STAGE_KIND_NAMES)
         _int(f"schedule.stages.{name}.steps", spec.steps, 0)
         if spec.steps == 0 and name in trained:
             _kept_nets(cfg, name, trained[: trained.index(name)])

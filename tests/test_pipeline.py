@@ -339,6 +339,32 @@ def test_every_experiment_sweep_composes_and_validates(experiment, scale):
     assert check(args) is None
 
 
+def test_checking_a_configuration_imports_neither_lightning_nor_mlflow():
+    """``python -m demon_lab``'s check of every experiment (what runs before any work) in a fresh
+    process: composing and validating a config needs neither the training nor the tracking library."""
+    code = ("import sys\n"
+            "from demon_lab.__main__ import check\n"
+            f"swept = {SWEPT!r}\n"
+            f"for e in {EXPERIMENTS!r}:\n"
+            "    assert check(['-m', f'+experiment={e}'] if e in swept else [f'+experiment={e}']) is None\n"
+            "print(sorted({m.split('.')[0] for m in sys.modules} & {'lightning', 'pytorch_lightning', 'mlflow'}))\n")
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.strip().splitlines()[-1] == "[]", result.stdout
+
+
+def test_the_stage_kinds_and_rate_schedules_a_config_may_name_are_the_implemented_ones():
+    from demon_lab.stages.base import learning_rate
+    from demon_lab.stages.modules import STAGE_KINDS
+    from demon_lab.stages.schedule import LR_SCHEDULES, STAGE_KIND_NAMES
+
+    assert STAGE_KIND_NAMES == tuple(STAGE_KINDS)
+    for schedule in LR_SCHEDULES:
+        assert learning_rate(500, 1000, 1e-3, schedule) > 0
+    with pytest.raises(ValueError, match=r"schedule\.lr_schedule: expected one of"):
+        learning_rate(500, 1000, 1e-3, "cosine")
+
+
 def test_experiments_exist_for_every_study():
     assert set(EXPERIMENTS) >= {"gt_flow_oracle", "gt_depth_motion_oracle", "iterations", "loss_weights", "baselines"}
 

@@ -18,8 +18,8 @@ import torch
 
 from demon_lab import execution, losses
 from demon_lab.nets.chain import DeMoN, downsample_image
+from demon_lab.stages.schedule import LR_SCHEDULES
 
-LR_SCHEDULES = ("released", "supplementary")
 MULTISTEP_MILESTONES = (0.4, 0.6, 0.8)
 FINAL_LR = 1e-6
 

@@ -19,6 +19,13 @@ from demon_lab.identity import model_identity, stage_key
 from demon_lab.nets.chain import DeMoN
 from demon_lab.stages.cache import CheckpointError, StageDir
 
+STAGE_KIND_NAMES = ("flow", "depth_motion", "iterative", "refine")
+"""The kinds of training stage (``schedule.stages.NAME.kind``): the keys of
+:data:`demon_lab.stages.modules.STAGE_KINDS`, named here so that checking a config needs no Lightning."""
+
+LR_SCHEDULES = ("released", "supplementary")
+"""``schedule.lr_schedule``: :func:`demon_lab.stages.base.learning_rate` implements both."""
+
 TRAINED_NETS = {"flow1": ["flow1"], "dm1": ["dm1"], "flow2": ["flow2"], "dm2": ["dm2"],
                 "iterative": ["flow2", "dm2"], "refine": ["refine_net"]}
 """The chain's nets (attributes of :class:`demon_lab.nets.DeMoN`) each stage trains and stores."""

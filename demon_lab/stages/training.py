@@ -18,7 +18,13 @@ from pathlib import Path
 import lightning as L
 from omegaconf import DictConfig, OmegaConf
 
-from demon_lab.execution import normalize_precision, plain_state, resolve_accelerator
+from demon_lab.execution import (
+    global_rank,
+    normalize_precision,
+    plain_state,
+    resolve_accelerator,
+    world_size,
+)
 from demon_lab.nets.chain import DeMoN
 from demon_lab.stages.cache import StageDir, atomic_checkpoint_io, load_checkpoint
 from demon_lab.stages.modules import STAGE_KINDS
@@ -30,32 +36,6 @@ log = logging.getLogger(__name__)
 class TrainingDiverged(FloatingPointError):
     """A stage's loss became NaN or infinite: the message names the stage, the step and every
     loss term (one line)."""
-
-
-def world_size(cfg: DictConfig) -> int:
-    return int(cfg.trainer.devices) * int(cfg.trainer.num_nodes)
-
-
-def global_rank(cfg: DictConfig) -> int:
-    """This process's rank in a multi-process (DDP) job: torchrun's RANK, SLURM's task id under
-    srun/submitit, or, in a process that Lightning's launcher started for a local multi-device run,
-    NODE_RANK x devices + LOCAL_RANK; 0 for a single process."""
-    import os
-
-    for var in ("RANK", "SLURM_PROCID"):
-        if os.environ.get(var, "").isdigit():
-            return int(os.environ[var])
-    if os.environ.get("LOCAL_RANK", "").isdigit():
-        node = os.environ.get("NODE_RANK", "0")
-        return (int(node) if node.isdigit() else 0) * int(cfg.trainer.devices) + int(os.environ["LOCAL_RANK"])
-    return 0
-
-
-def processes_launched_outside() -> bool:
-    """True when torchrun or SLURM started this job's processes (Lightning then spawns none)."""
-    import os
-
-    return any(os.environ.get(var, "").isdigit() for var in ("RANK", "SLURM_PROCID", "LOCAL_RANK"))
 
 
 def build_datamodule(cfg: DictConfig, batch_size: int, samples: int, skip: int = 0, easy_first=None,
