@@ -118,8 +118,8 @@ def format_table(results: dict[str, list[dict[str, float]]]) -> str:
 def run(overrides: Sequence[str], out: str | None = None) -> dict[str, list[dict[str, float]]]:
     from hydra import compose, initialize_config_dir
 
-    from demon_lab.__main__ import CONF
     from demon_lab.config import ConfigError, drop_missing_sources, instantiate
+    from demon_lab.resources import CONF
     from demon_lab.stages.schedule import build_chain, load_stage, stage_dirs
     from demon_lab.validate import validate
 
@@ -128,7 +128,7 @@ def run(overrides: Sequence[str], out: str | None = None) -> dict[str, list[dict
     drop_missing_sources(cfg)
     validate(cfg)
     if cfg.get("threads") is not None:
-        from demon_lab.job import set_threads
+        from demon_lab.execution import set_threads
 
         set_threads(int(cfg.threads))
     chain = build_chain(cfg)  # with model.weights loaded, if given

@@ -251,3 +251,13 @@ def processes_launched_outside() -> bool:
     import os
 
     return any(os.environ.get(var, "").isdigit() for var in ("RANK", "SLURM_PROCID", "LOCAL_RANK"))
+
+
+def set_threads(n: int) -> None:
+    """Limit this process's torch and OpenCV CPU threads: processes that share cores, each running
+    a thread per core, slow each other down far more than the share they give up."""
+    import cv2
+    import torch
+
+    torch.set_num_threads(n)
+    cv2.setNumThreads(n)

@@ -52,6 +52,8 @@ def run(cfg: DictConfig) -> dict[str, Any]:
         log.info("%s", note)
     validate(cfg)
     if cfg.get("threads") is not None:
+        from demon_lab.execution import set_threads
+
         set_threads(int(cfg.threads))
     if cfg.method == "demon":
         from demon_lab.execution import global_rank, world_size
@@ -219,16 +221,6 @@ def known_errors() -> tuple[type[BaseException], ...]:
     from demon_lab.tracking import TrackingError
 
     return ConfigError, DataError, TrackingError, CheckpointError, TrainingDiverged
-
-
-def set_threads(n: int) -> None:
-    """Limit this process's torch and OpenCV CPU threads: processes that share cores, each running
-    a thread per core, slow each other down far more than the share they give up."""
-    import cv2
-    import torch
-
-    torch.set_num_threads(n)
-    cv2.setNumThreads(n)
 
 
 def main_task(cfg: DictConfig) -> None:
