@@ -105,12 +105,14 @@ def _model_files(cfg: DictConfig) -> None:
         if cfg.model.get("compat") == "demon_original":
             raise ConfigError("model.correlation: compat=demon_original reproduces DeMoN's released graph, which has "
                               "no correlation front; leave model.correlation null")
-    from demon_lab.nets.prior import PRIORS
+    from demon_lab.nets.prior import MOTION_PRIORS, PRIORS
 
     _choice("model.flow1_prior", cfg.model.get("flow1_prior"), PRIORS)
-    if cfg.model.get("flow1_prior") is not None and cfg.model.get("compat") == "demon_original":
-        raise ConfigError("model.flow1_prior: compat=demon_original reproduces DeMoN's released graph, whose "
-                          "bootstrap flow net has no prior flow; leave model.flow1_prior null")
+    _choice("model.dm1_prior", cfg.model.get("dm1_prior"), MOTION_PRIORS)
+    for key in ("flow1_prior", "dm1_prior"):
+        if cfg.model.get(key) is not None and cfg.model.get("compat") == "demon_original":
+            raise ConfigError(f"model.{key}: compat=demon_original reproduces DeMoN's released graph, whose "
+                              f"bootstrap nets have no classical priors; leave model.{key} null")
     weights = cfg.model.get("weights")
     if not weights:
         return
@@ -121,7 +123,7 @@ def _model_files(cfg: DictConfig) -> None:
     from demon_lab.weights import check_fits
 
     why = check_fits(weights, cfg.model.variant, float(cfg.model.width), tuple(cfg.data.size),
-                     correlation_of(cfg.model), cfg.model.get("flow1_prior"))
+                     correlation_of(cfg.model), cfg.model.get("flow1_prior"), cfg.model.get("dm1_prior"))
     if why:
         raise ConfigError(f"model.weights: {why}")
     if not cfg.train:  # evaluated as they are: the passes run must not fall back on untrained nets

@@ -543,9 +543,55 @@ def test_the_bootstrap_flow_net_with_a_prior_predicts_a_correction_of_it():
     with torch.no_grad():
         other = net(_textured_pair((-3, 2)))[1]
     assert not torch.allclose(other[:, :2], zero2[:, :2])
-    with pytest.raises(ValueError, match="whose bootstrap flow net has no prior flow"):
+    with pytest.raises(ValueError, match="whose bootstrap nets have no classical priors"):
         DeMoN("v1", 0.25, (64, 64), compat="demon_original", flow1_prior="dis")
     with pytest.raises(ValueError, match="flow1_prior: expected one of"):
         DeMoN("v1", 0.25, (64, 64), flow1_prior="flownet")
     with pytest.raises(ValueError, match="the iterative flow net has its prior"):
         FlowNet(iterative=True, width=0.25, size=(64, 64), prior="dis")
+
+
+def test_the_ransac_motion_prior_recovers_the_motion_from_its_flow():
+    from demon_lab import geometry as geo
+    from demon_lab import metrics
+    from demon_lab.data import synthetic
+    from demon_lab.nets.prior import ransac_motion
+
+    flows, cams, motions = [], [], []
+    for seed in (1, 2):
+        s = synthetic.render_pair("synthetic_scenes11", seed, (96, 128))
+        inv2 = geo.inverse_depth_pyramid(torch.as_tensor(s["inv_depth"]).float().reshape(1, 1, 96, 128), levels=2)[2]
+        motion, K = torch.as_tensor(s["motion"]).float()[None], torch.as_tensor(s["intrinsics"]).float()[None]
+        flows.append(geo.flow_from_depth_motion(inv2, motion, K))
+        cams.append(K)
+        motions.append(motion[0])
+    flow, K = torch.cat(flows), torch.cat(cams)
+    prior = ransac_motion(flow, K)
+    assert prior.shape == (2, 6) and prior.dtype == torch.float32
+    assert torch.equal(prior, ransac_motion(flow, K))  # a fixed subset and OpenCV's fixed generator
+    for i in range(2):
+        errors = metrics.motion_errors(prior[i], motions[i])
+        assert errors["rot_deg"] < 0.5 and errors["tran_deg"] < 3.0, errors
+        assert torch.isclose(prior[i, 3:].norm(), torch.tensor(1.0))
+    # a flow without vectors has no solution: no motion
+    assert torch.equal(ransac_motion(torch.full_like(flow, float("nan")), K), torch.zeros(2, 6))
+
+
+def test_the_bootstrap_depth_motion_net_with_a_motion_prior_starts_at_that_motion():
+    from demon_lab.nets.prior import ransac_motion
+
+    torch.manual_seed(0)
+    chain, plain = DeMoN("v1", 0.25, (96, 128), dm1_prior="ransac"), DeMoN("v1", 0.25, (96, 128))
+    assert chain.dm1.conv2_extra.y.conv.in_channels == 8 and plain.dm1.conv2_extra.y.conv.in_channels == 7
+    pair = _textured_pair((6, -4))
+    K = torch.tensor([[0.89, 1.19, 0.5, 0.5]])
+    with torch.no_grad():
+        p = chain.bootstrap(pair, torch.nn.functional.avg_pool2d(pair[:, 3:], 4), K)
+        assert torch.allclose(p.motion, ransac_motion(p.flow, K))  # the correction starts at none
+        chain.dm1.motion_fc3.bias[3:6] += 0.1  # a correction is added to the prior
+        q = chain.bootstrap(pair, torch.nn.functional.avg_pool2d(pair[:, 3:], 4), K)
+    assert torch.allclose(q.motion[:, 3:] - p.motion[:, 3:], torch.full((1, 3), 0.1), atol=1e-6)
+    with pytest.raises(ValueError, match="dm1_prior: expected one of"):
+        DeMoN("v1", 0.25, (64, 64), dm1_prior="lmeds")
+    with pytest.raises(ValueError, match="whose bootstrap nets have no classical priors"):
+        DeMoN("v1", 0.25, (64, 64), compat="demon_original", dm1_prior="ransac")

@@ -16,7 +16,7 @@ iterative flow net with ground truth. Both need ``gt`` with
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import torch
 import torch.nn.functional as F
@@ -25,9 +25,9 @@ from torch import nn
 from demon_lab import geometry as geo
 from demon_lab.execution import float32
 from demon_lab.nets.blocks import check_correlation, check_size, check_variant
-from demon_lab.nets.depth_motion_net import DepthMotionNet
+from demon_lab.nets.depth_motion_net import DepthMotion, DepthMotionNet
 from demon_lab.nets.flow_net import FlowNet
-from demon_lab.nets.prior import check_prior
+from demon_lab.nets.prior import check_motion_prior, check_prior, ransac_motion
 from demon_lab.nets.refine_net import RefineNet
 
 ORACLES = (None, "flow", "depth_motion")
@@ -142,11 +142,14 @@ class DeMoN(nn.Module):
     values), for its converted weights (``python -m demon_lab.convert``). ``correlation``:
     ``(max_displacement, stride)`` of a correlation front in both flow nets (:class:`FlowNet`;
     not DeMoN's design), or None. ``flow1_prior``: ``"dis"`` gives the bootstrap flow net a
-    classical prior flow (:mod:`demon_lab.nets.prior`; not DeMoN's design), or None."""
+    classical prior flow (:mod:`demon_lab.nets.prior`; not DeMoN's design), or None. ``dm1_prior``:
+    ``"ransac"`` gives the bootstrap depth-motion net the motion that 5-point RANSAC reads from the
+    flow, in the form the iterative net reads the previous motion (the depth triangulated with it),
+    and the net predicts a correction of that motion, starting at none; or None."""
 
     def __init__(self, variant: str = "v1", width: float = 1.0, size: tuple[int, int] = (192, 256),
                  compat: str | None = None, correlation: tuple[int, int] | None = None,
-                 flow1_prior: str | None = None):
+                 flow1_prior: str | None = None, dm1_prior: str | None = None):
         super().__init__()
         check_variant(variant)
         check_size(*size)
@@ -159,15 +162,20 @@ class DeMoN(nn.Module):
         if compat == "demon_original" and correlation is not None:
             raise ValueError("compat='demon_original' reproduces DeMoN's released graph, which has no "
                              "correlation front")
-        if compat == "demon_original" and flow1_prior is not None:
-            raise ValueError("compat='demon_original' reproduces DeMoN's released graph, whose bootstrap flow "
-                             "net has no prior flow")
+        if compat == "demon_original" and (flow1_prior is not None or dm1_prior is not None):
+            raise ValueError("compat='demon_original' reproduces DeMoN's released graph, whose bootstrap nets "
+                             "have no classical priors")
         self.variant, self.width, self.size, self.compat = variant, width, tuple(size), compat
         self.correlation = None if correlation is None else check_correlation(correlation)
         kw = dict(variant=variant, width=width, size=self.size)
         self.flow1_prior = check_prior(flow1_prior)
         self.flow1 = FlowNet(iterative=False, correlation=self.correlation, prior=self.flow1_prior, **kw)
-        self.dm1 = DepthMotionNet(iterative=False, **kw)
+        self.dm1_prior = check_motion_prior(dm1_prior)
+        self.dm1 = DepthMotionNet(iterative=self.dm1_prior is not None, **kw)  # + the depth from the prior
+        if self.dm1_prior:  # the correction of the prior motion starts at none
+            with torch.no_grad():
+                self.dm1.motion_fc3.weight[:6].zero_()
+                self.dm1.motion_fc3.bias[:6].zero_()
         self.flow2 = FlowNet(iterative=True, correlation=self.correlation, **kw)
         self.dm2 = DepthMotionNet(iterative=True, **kw)
         self.refine_net = RefineNet(variant=variant, width=width)
@@ -177,9 +185,18 @@ class DeMoN(nn.Module):
         flowconf5, flowconf2 = self.flow1(pair)
         flow, conf = flowconf2[:, :2], flowconf2[:, 2:]
         dm_flow, dm_conf = (gt2.flow, _oracle_confidence(gt2.flow)) if oracle == "flow" else (flow, conf)
-        extra = depth_motion_net_inputs(image2_2, dm_flow, dm_conf, None, intrinsics, self.compat)
-        dm = self.dm1(pair, extra)
+        dm = self.depth_motion1(pair, image2_2, dm_flow, dm_conf, intrinsics)
         return Prediction(flow, conf, flowconf5[:, :2], flowconf5[:, 2:], dm.inv_depth, dm.normals, dm.motion)
+
+    def depth_motion1(self, pair: torch.Tensor, image2_2: torch.Tensor, flow: torch.Tensor, conf: torch.Tensor,
+                      intrinsics: torch.Tensor) -> DepthMotion:
+        """The bootstrap depth-motion net on a flow and its confidence (with ``dm1_prior``: on the
+        5-point RANSAC motion of that flow too, and the motion it returns is that motion corrected)."""
+        if not self.dm1_prior:
+            return self.dm1(pair, depth_motion_net_inputs(image2_2, flow, conf, None, intrinsics, self.compat))
+        prior = ransac_motion(flow, intrinsics)
+        dm = self.dm1(pair, depth_motion_net_inputs(image2_2, flow, conf, prior, intrinsics, self.compat))
+        return replace(dm, motion=dm.motion + prior)
 
     def iterate(self, pair: torch.Tensor, image2_2: torch.Tensor, intrinsics: torch.Tensor,
                 prev: Prediction, gt2: GroundTruthInputs | None = None,

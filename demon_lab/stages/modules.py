@@ -85,8 +85,12 @@ class DepthMotionStage(StageModule):
                 prev_motion = prev.motion
             if gt2 is not None:
                 flow, conf = gt2.flow, torch.isfinite(gt2.flow).to(gt2.flow.dtype)
-            extra = depth_motion_net_inputs(image2_2, flow, conf, prev_motion, K, self.chain.compat)
-        dm = getattr(self.chain, self.net)(pair, extra)
+            if self.net == "dm2":
+                extra = depth_motion_net_inputs(image2_2, flow, conf, prev_motion, K, self.chain.compat)
+        if self.net == "dm1":
+            dm = self.chain.depth_motion1(pair, image2_2, flow, conf, K)
+        else:
+            dm = self.chain.dm2(pair, extra)
         ramp = self.ramp(2.0 if self.net == "dm1" else 1.0)
         return losses.depth_motion_loss(dm.inv_depth, dm.normals, dm.motion, gt, self.weights, ramp=ramp)
 

@@ -46,7 +46,8 @@ def describe_stage(cfg: DictConfig, name: str, upstream: dict[str, str]) -> dict
         "stage_config": plain(spec),
         "optimisation": {k: cfg.schedule[k] for k in ("lr_schedule", "weight_decay", "grad_clip")},
         "batch_size": spec.get("batch_size") or cfg.data.batch_size,
-        "model": {**model_identity(plain(cfg.model)), "size": list(cfg.data.size)},  # weights by content
+        "model": {**_stage_model(model_identity(plain(cfg.model)), name, list(cfg.schedule.stages)),
+                  "size": list(cfg.data.size)},  # weights by content
         # Only the weights this stage's loss reads: ablations that change another stage's terms
         # (no_normals for the flow stages, say, or no_sig for a flow stage without sig terms)
         # share this stage.
@@ -60,6 +61,17 @@ def describe_stage(cfg: DictConfig, name: str, upstream: dict[str, str]) -> dict
         **({"precision": precision} if (precision := normalize_precision(cfg.get("precision", 32))) != "32-true"
            and int(spec.steps) > 0 else {}),
     }
+
+
+MODEL_OPTION_FROM = {"dm1_prior": "dm1"}
+"""Model options that change only the nets from a stage on: the stages before it leave them out of
+their keys (so flow1 is shared between chains with and without ``dm1_prior``)."""
+
+
+def _stage_model(model: dict[str, Any], name: str, names: list[str]) -> dict[str, Any]:
+    return {k: v for k, v in model.items()
+            if not (k in MODEL_OPTION_FROM and MODEL_OPTION_FROM[k] in names
+                    and names.index(name) < names.index(MODEL_OPTION_FROM[k]))}
 
 
 def stage_dirs(cfg: DictConfig) -> list[StageDir]:
@@ -79,7 +91,7 @@ def build_chain(cfg: DictConfig) -> DeMoN:
     ``model.weights`` loaded (:func:`demon_lab.weights.load_weights`); its nets in channels-last
     layout and compiled when ``model.channels_last`` / ``model.compile`` ask for it."""
     chain = DeMoN(cfg.model.variant, float(cfg.model.width), tuple(cfg.data.size), cfg.model.get("compat"),
-                  correlation_of(cfg.model), cfg.model.get("flow1_prior"))
+                  correlation_of(cfg.model), cfg.model.get("flow1_prior"), cfg.model.get("dm1_prior"))
     if cfg.model.get("weights"):
         from demon_lab.weights import load_weights
 
