@@ -339,7 +339,6 @@ def test_depth_motion_stage_is_fed_ground_truth_flow_for_gt_flow_warmup(warmup):
     from unittest import mock
 
     from demon_lab.nets.chain import ground_truth_inputs
-    from demon_lab.stages import modules
     from demon_lab.stages.modules import DepthMotionStage
 
     torch.manual_seed(0)
@@ -352,14 +351,14 @@ def test_depth_motion_stage_is_fed_ground_truth_flow_for_gt_flow_warmup(warmup):
     with torch.no_grad():
         predicted = chain.flow1(pair)[1][:, :2]
     fed = []
-    real = modules.depth_motion_net_inputs
+    real = chain.depth_motion1  # dm1 on the flow and confidence it is fed
 
-    def spy(image2_2, flow, conf, *args):
+    def spy(pair, image2_2, flow, conf, *args):
         fed.append((flow.clone(), conf.clone()))
-        return real(image2_2, flow, conf, *args)
+        return real(pair, image2_2, flow, conf, *args)
 
     steps = (0, 149, 150, 299)
-    with mock.patch.object(modules, "depth_motion_net_inputs", spy):
+    with mock.patch.object(chain, "depth_motion1", spy):
         _terms_at(stage, batch, losses.ground_truth(batch), steps)
     assert len(fed) == len(steps)
     for step, (flow, conf) in zip(steps, fed, strict=True):
