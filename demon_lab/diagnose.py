@@ -123,7 +123,7 @@ def run(overrides: Sequence[str], out: str | None = None) -> dict[str, list[dict
     from demon_lab.stages.schedule import build_chain, load_stage, stage_dirs
     from demon_lab.validate import validate
 
-    with initialize_config_dir(CONF, version_base="1.3"):
+    with initialize_config_dir(str(CONF), version_base="1.3"):
         cfg = compose("config", overrides=list(overrides))
     drop_missing_sources(cfg)
     validate(cfg)
