@@ -407,36 +407,25 @@ def test_the_probe_options_are_absent_from_every_profile_and_key_only_their_stag
                                                                              strict=True))
 
 
+@pytest.mark.parametrize("option, key, built", [
+    ("model.correlation=[8,2]", "correlation",
+     lambda chain: chain.flow1.correlation == (8, 2) and chain.flow2.correlation == (8, 2)),
+    ("model.flow1_prior=dis", "flow1_prior", lambda chain: chain.flow1.prior == "dis" and chain.flow2.prior is None),
+], ids=["correlation", "flow1_prior"])
 @pytest.mark.parametrize("scale", ["smoke", "cpu", "paper"])
-def test_a_correlation_front_keys_every_stage_and_the_run_and_is_absent_by_default(scale):
+def test_a_flow_net_option_keys_every_stage_and_the_run_and_is_absent_by_default(option, key, built, scale):
     import demon_lab.config  # noqa: F401  (registers the resolvers, as the app does)
     from demon_lab.identity import run_key, semantic_config
     from demon_lab.stages.schedule import build_chain, stage_dirs
 
     with initialize_config_dir(CONF, version_base="1.3"):
         plain = compose("config", [f"scale={scale}"])
-        corr = compose("config", [f"scale={scale}", "model.correlation=[8,2]"])
-    assert plain.model.correlation is None and "correlation" not in semantic_config(plain)["model"]
-    assert all(a.key != b.key for a, b in zip(stage_dirs(plain), stage_dirs(corr), strict=True))
-    assert run_key(plain) != run_key(corr)
+        changed = compose("config", [f"scale={scale}", option])
+    assert plain.model[key] is None and key not in semantic_config(plain)["model"]
+    assert all(a.key != b.key for a, b in zip(stage_dirs(plain), stage_dirs(changed), strict=True))
+    assert run_key(plain) != run_key(changed)
     if scale != "paper":  # (the paper-scale chain is 46 M parameters: the smaller ones show the same)
-        assert build_chain(corr).flow1.correlation == (8, 2) and build_chain(plain).flow1.correlation is None
-
-
-@pytest.mark.parametrize("scale", ["smoke", "cpu"])
-def test_a_prior_flow_keys_every_stage_and_the_run_and_is_absent_by_default(scale):
-    import demon_lab.config  # noqa: F401  (registers the resolvers, as the app does)
-    from demon_lab.identity import run_key, semantic_config
-    from demon_lab.stages.schedule import build_chain, stage_dirs
-
-    with initialize_config_dir(CONF, version_base="1.3"):
-        plain = compose("config", [f"scale={scale}"])
-        prior = compose("config", [f"scale={scale}", "model.flow1_prior=dis"])
-    assert plain.model.flow1_prior is None and "flow1_prior" not in semantic_config(plain)["model"]
-    assert all(a.key != b.key for a, b in zip(stage_dirs(plain), stage_dirs(prior), strict=True))
-    assert run_key(plain) != run_key(prior)
-    chain = build_chain(prior)
-    assert chain.flow1.prior == "dis" and chain.flow2.prior is None and build_chain(plain).flow1.prior is None
+        assert built(build_chain(changed)) and not built(build_chain(plain))
 
 
 def test_a_motion_prior_keys_the_stages_from_dm1_on_and_shares_flow1():

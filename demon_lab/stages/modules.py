@@ -75,22 +75,18 @@ class DepthMotionStage(StageModule):
         with torch.no_grad():
             given = self.oracle == "flow" or self.global_step < self.gt_flow_warmup * self.steps
             gt2 = ground_truth_inputs(batch, K) if given else None
-            prev_motion = None
             if self.net == "dm1":
                 flow, conf = _flow_and_conf(self.chain.flow1(pair)[1])
             else:
                 prev = self.chain.bootstrap(pair, image2_2, K)
                 extra = flow_net_inputs(image2_2, prev.inv_depth, prev.normals, prev.motion, K, self.chain.compat)
                 flow, conf = _flow_and_conf(self.chain.flow2(pair, extra)[1])
-                prev_motion = prev.motion
             if gt2 is not None:
                 flow, conf = gt2.flow, torch.isfinite(gt2.flow).to(gt2.flow.dtype)
-            if self.net == "dm2":
-                extra = depth_motion_net_inputs(image2_2, flow, conf, prev_motion, K, self.chain.compat)
         if self.net == "dm1":
             dm = self.chain.depth_motion1(pair, image2_2, flow, conf, K)
-        else:
-            dm = self.chain.dm2(pair, extra)
+        else:  # (the inputs are built without gradient)
+            dm = self.chain.dm2(pair, depth_motion_net_inputs(image2_2, flow, conf, prev.motion, K, self.chain.compat))
         ramp = self.ramp(2.0 if self.net == "dm1" else 1.0)
         return losses.depth_motion_loss(dm.inv_depth, dm.normals, dm.motion, gt, self.weights, ramp=ramp)
 
