@@ -105,14 +105,16 @@ def _model_files(cfg: DictConfig) -> None:
         if cfg.model.get("compat") == "demon_original":
             raise ConfigError("model.correlation: compat=demon_original reproduces DeMoN's released graph, which has "
                               "no correlation front; leave model.correlation null")
-    from demon_lab.nets.prior import MOTION_PRIORS, PRIORS
+    from demon_lab.nets.prior import MOTION_PRIORS, PREVIOUS_MOTION_PRIORS, PRIORS
+    from demon_lab.stages.schedule import PRIOR_KEYS, priors_of
 
     _choice("model.flow1_prior", cfg.model.get("flow1_prior"), PRIORS)
     _choice("model.dm1_prior", cfg.model.get("dm1_prior"), MOTION_PRIORS)
-    for key in ("flow1_prior", "dm1_prior"):
+    _choice("model.dm2_prior", cfg.model.get("dm2_prior"), PREVIOUS_MOTION_PRIORS)
+    for key in PRIOR_KEYS:
         if cfg.model.get(key) is not None and cfg.model.get("compat") == "demon_original":
             raise ConfigError(f"model.{key}: compat=demon_original reproduces DeMoN's released graph, whose "
-                              f"bootstrap nets have no classical priors; leave model.{key} null")
+                              f"nets have no priors; leave model.{key} null")
     weights = cfg.model.get("weights")
     if not weights:
         return
@@ -123,7 +125,7 @@ def _model_files(cfg: DictConfig) -> None:
     from demon_lab.weights import check_fits
 
     why = check_fits(weights, cfg.model.variant, float(cfg.model.width), tuple(cfg.data.size),
-                     correlation_of(cfg.model), cfg.model.get("flow1_prior"), cfg.model.get("dm1_prior"))
+                     correlation_of(cfg.model), **priors_of(cfg.model))
     if why:
         raise ConfigError(f"model.weights: {why}")
     if not cfg.train:  # evaluated as they are: the passes run must not fall back on untrained nets

@@ -83,10 +83,10 @@ def misfit(chain: torch.nn.Module, nets: dict[str, dict[str, torch.Tensor]]) -> 
 
 
 def check_fits(path: str | Path, variant: str, width: float, size: tuple[int, int],
-               correlation: tuple[int, int] | None = None, flow1_prior: str | None = None,
-               dm1_prior: str | None = None) -> str | None:
+               correlation: tuple[int, int] | None = None, **priors: str | None) -> str | None:
     """Why the weights file does not fit the chain a config builds, or None (shapes only: no
-    weights are copied, and the chain is built on the meta device)."""
+    weights are copied, and the chain is built on the meta device). ``priors``: the chain's prior
+    options (``flow1_prior=...``)."""
     from demon_lab.nets import DeMoN
 
     try:
@@ -94,14 +94,12 @@ def check_fits(path: str | Path, variant: str, width: float, size: tuple[int, in
     except CheckpointError as e:
         return str(e)
     with torch.device("meta"):
-        chain = DeMoN(variant, width, tuple(size), correlation=correlation, flow1_prior=flow1_prior,
-                      dm1_prior=dm1_prior)
+        chain = DeMoN(variant, width, tuple(size), correlation=correlation, **priors)
     why = misfit(chain, nets)
     if why is None:
         return None
     front = "" if correlation is None else f" model.correlation={list(correlation)}"
-    front += "" if flow1_prior is None else f" model.flow1_prior={flow1_prior}"
-    front += "" if dm1_prior is None else f" model.dm1_prior={dm1_prior}"
+    front += "".join(f" model.{k}={v}" for k, v in priors.items() if v is not None)
     return (f"{path} does not fit the chain of model.variant={variant} model.width={width}{front} "
             f"data.size={list(size)}: {why}. {RELEASED_HINT}")
 

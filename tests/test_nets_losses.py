@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import pytest
 import torch
@@ -542,7 +543,7 @@ def test_the_bootstrap_flow_net_with_a_prior_predicts_a_correction_of_it():
     with torch.no_grad():
         other = net(_textured_pair((-3, 2)))[1]
     assert not torch.allclose(other[:, :2], zero2[:, :2])
-    with pytest.raises(ValueError, match="whose bootstrap nets have no classical priors"):
+    with pytest.raises(ValueError, match="whose nets have no priors"):
         DeMoN("v1", 0.25, (64, 64), compat="demon_original", flow1_prior="dis")
     with pytest.raises(ValueError, match="flow1_prior: expected one of"):
         DeMoN("v1", 0.25, (64, 64), flow1_prior="flownet")
@@ -592,5 +593,26 @@ def test_the_bootstrap_depth_motion_net_with_a_motion_prior_starts_at_that_motio
     assert torch.allclose(q.motion[:, 3:] - p.motion[:, 3:], torch.full((1, 3), 0.1), atol=1e-6)
     with pytest.raises(ValueError, match="dm1_prior: expected one of"):
         DeMoN("v1", 0.25, (64, 64), dm1_prior="lmeds")
-    with pytest.raises(ValueError, match="whose bootstrap nets have no classical priors"):
+    with pytest.raises(ValueError, match="whose nets have no priors"):
         DeMoN("v1", 0.25, (64, 64), compat="demon_original", dm1_prior="ransac")
+
+
+def test_the_iterative_depth_motion_net_with_a_motion_prior_starts_at_the_previous_motion():
+    torch.manual_seed(0)
+    chain = DeMoN("v1", 0.25, (96, 128), dm2_prior="previous")
+    pair = _textured_pair((6, -4))
+    image2_2 = torch.nn.functional.avg_pool2d(pair[:, 3:], 4)
+    K = torch.tensor([[0.89, 1.19, 0.5, 0.5]])
+    with torch.no_grad():
+        p0 = chain.bootstrap(pair, image2_2, K)
+        p0 = replace(p0, motion=torch.tensor([[0.02, -0.01, 0.03, 0.3, -0.2, 0.9]]))
+        p1 = chain.iterate(pair, image2_2, K, p0)
+        assert torch.allclose(p1.motion, p0.motion)  # the correction starts at none
+        plain = DeMoN("v1", 0.25, (96, 128))
+        plain.load_state_dict(chain.state_dict())  # the same nets: only the motion's meaning differs
+        assert not torch.allclose(plain.iterate(pair, image2_2, K, p0).motion, p0.motion, atol=1e-4)
+        chain.dm2.motion_fc3.bias[3:6] += 0.1  # a correction is added to the previous motion
+        p2 = chain.iterate(pair, image2_2, K, p0)
+    assert torch.allclose(p2.motion[:, 3:] - p0.motion[:, 3:], torch.full((1, 3), 0.1), atol=1e-6)
+    with pytest.raises(ValueError, match="dm2_prior: expected one of"):
+        DeMoN("v1", 0.25, (64, 64), dm2_prior="ransac")

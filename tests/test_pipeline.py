@@ -268,8 +268,11 @@ def test_a_job_that_raises_leaves_its_run_failed(tmp_path):
      "model.correlation: compat=demon_original reproduces DeMoN's released graph, which has no correlation front"),
     (["model.flow1_prior=flownet"], "model.flow1_prior: expected one of null, dis, got 'flownet'"),
     (["model.dm1_prior=lmeds"], "model.dm1_prior: expected one of null, ransac, got 'lmeds'"),
+    (["model.dm2_prior=ransac"], "model.dm2_prior: expected one of null, previous, got 'ransac'"),
+    (["model.dm2_prior=previous", "model.compat=demon_original"],
+     "model.dm2_prior: compat=demon_original reproduces DeMoN's released graph, whose nets have no priors"),
     (["model.flow1_prior=dis", "model.compat=demon_original"],
-     "model.flow1_prior: compat=demon_original reproduces DeMoN's released graph, whose bootstrap nets have no"),
+     "model.flow1_prior: compat=demon_original reproduces DeMoN's released graph, whose nets have no priors"),
     (["+schedule.stages.dm1.layers_first=0.5"], "schedule.stages.dm1.layers_first: only the bootstrap flow net's"),
     (["+schedule.stages.flow1.layers_first=0"], "schedule.stages.flow1.layers_first: expected a fraction of the stage"),
     (["+schedule.stages.flow1.restarts=[3,0]"], "schedule.stages.flow1.restarts: expected [starts, steps]"),
@@ -428,19 +431,24 @@ def test_a_flow_net_option_keys_every_stage_and_the_run_and_is_absent_by_default
         assert built(build_chain(changed)) and not built(build_chain(plain))
 
 
-def test_a_motion_prior_keys_the_stages_from_dm1_on_and_shares_flow1():
+@pytest.mark.parametrize(("option", "first"), [("dm1_prior=ransac", "dm1"), ("dm2_prior=previous", "dm2")])
+def test_a_motion_prior_keys_the_stages_from_its_net_on_and_shares_those_before(option, first):
     import demon_lab.config  # noqa: F401  (registers the resolvers, as the app does)
     from demon_lab.identity import run_key
     from demon_lab.stages.schedule import build_chain, stage_dirs
 
+    key, value = option.split("=")
     with initialize_config_dir(CONF, version_base="1.3"):
         plain = compose("config", ["scale=cpu"])
-        prior = compose("config", ["scale=cpu", "model.dm1_prior=ransac"])
-    assert plain.model.dm1_prior is None and run_key(plain) != run_key(prior)
+        prior = compose("config", ["scale=cpu", f"model.{option}"])
+    assert plain.model[key] is None and run_key(plain) != run_key(prior)
     a, b = stage_dirs(plain), stage_dirs(prior)
-    assert a[0].name == "flow1" and a[0].key == b[0].key
-    assert all(x.key != y.key for x, y in zip(a[1:], b[1:], strict=True))
-    assert build_chain(prior).dm1_prior == "ransac" and build_chain(plain).dm1_prior is None
+    names = [d.name for d in a]
+    assert names == [d.name for d in b] and first in names
+    cut = names.index(first)
+    assert all(x.key == y.key for x, y in zip(a[:cut], b[:cut], strict=True))
+    assert all(x.key != y.key for x, y in zip(a[cut:], b[cut:], strict=True))
+    assert getattr(build_chain(prior), key) == value and getattr(build_chain(plain), key) is None
 
 
 def test_train_stage_hands_the_probe_options_to_their_stages(tmp_path, monkeypatch):

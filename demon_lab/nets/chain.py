@@ -27,7 +27,7 @@ from demon_lab.execution import float32
 from demon_lab.nets.blocks import check_correlation, check_size, check_variant
 from demon_lab.nets.depth_motion_net import DepthMotion, DepthMotionNet
 from demon_lab.nets.flow_net import FlowNet
-from demon_lab.nets.prior import check_motion_prior, check_prior, ransac_motion
+from demon_lab.nets.prior import check_motion_prior, check_previous_motion_prior, check_prior, ransac_motion
 from demon_lab.nets.refine_net import RefineNet
 
 ORACLES = (None, "flow", "depth_motion")
@@ -145,11 +145,14 @@ class DeMoN(nn.Module):
     classical prior flow (:mod:`demon_lab.nets.prior`; not DeMoN's design), or None. ``dm1_prior``:
     ``"ransac"`` gives the bootstrap depth-motion net the motion that 5-point RANSAC reads from the
     flow, in the form the iterative net reads the previous motion (the depth triangulated with it),
-    and the net predicts a correction of that motion, starting at none; or None."""
+    and the net predicts a correction of that motion, starting at none; or None. ``dm2_prior``:
+    ``"previous"`` makes the iterative depth-motion net predict a correction of the previous pass's
+    motion (which it reads, as DeMoN's does), starting at none, instead of the motion itself; or
+    None (:mod:`demon_lab.nets.prior`; not DeMoN's design)."""
 
     def __init__(self, variant: str = "v1", width: float = 1.0, size: tuple[int, int] = (192, 256),
                  compat: str | None = None, correlation: tuple[int, int] | None = None,
-                 flow1_prior: str | None = None, dm1_prior: str | None = None):
+                 flow1_prior: str | None = None, dm1_prior: str | None = None, dm2_prior: str | None = None):
         super().__init__()
         check_variant(variant)
         check_size(*size)
@@ -162,9 +165,9 @@ class DeMoN(nn.Module):
         if compat == "demon_original" and correlation is not None:
             raise ValueError("compat='demon_original' reproduces DeMoN's released graph, which has no "
                              "correlation front")
-        if compat == "demon_original" and (flow1_prior is not None or dm1_prior is not None):
-            raise ValueError("compat='demon_original' reproduces DeMoN's released graph, whose bootstrap nets "
-                             "have no classical priors")
+        if compat == "demon_original" and (flow1_prior, dm1_prior, dm2_prior) != (None, None, None):
+            raise ValueError("compat='demon_original' reproduces DeMoN's released graph, whose nets "
+                             "have no priors")
         self.variant, self.width, self.size, self.compat = variant, width, tuple(size), compat
         self.correlation = None if correlation is None else check_correlation(correlation)
         kw = dict(variant=variant, width=width, size=self.size)
@@ -172,12 +175,14 @@ class DeMoN(nn.Module):
         self.flow1 = FlowNet(iterative=False, correlation=self.correlation, prior=self.flow1_prior, **kw)
         self.dm1_prior = check_motion_prior(dm1_prior)
         self.dm1 = DepthMotionNet(iterative=self.dm1_prior is not None, **kw)  # + the depth from the prior
-        if self.dm1_prior:  # the correction of the prior motion starts at none
-            with torch.no_grad():
-                self.dm1.motion_fc3.weight[:6].zero_()
-                self.dm1.motion_fc3.bias[:6].zero_()
         self.flow2 = FlowNet(iterative=True, correlation=self.correlation, **kw)
+        self.dm2_prior = check_previous_motion_prior(dm2_prior)
         self.dm2 = DepthMotionNet(iterative=True, **kw)
+        for net, prior in ((self.dm1, self.dm1_prior), (self.dm2, self.dm2_prior)):
+            if prior:  # the correction of the prior motion starts at none
+                with torch.no_grad():
+                    net.motion_fc3.weight[:6].zero_()
+                    net.motion_fc3.bias[:6].zero_()
         self.refine_net = RefineNet(variant=variant, width=width)
 
     def bootstrap(self, pair: torch.Tensor, image2_2: torch.Tensor, intrinsics: torch.Tensor,
@@ -198,6 +203,14 @@ class DeMoN(nn.Module):
         dm = self.dm1(pair, depth_motion_net_inputs(image2_2, flow, conf, prior, intrinsics, self.compat))
         return replace(dm, motion=dm.motion + prior)
 
+    def depth_motion2(self, pair: torch.Tensor, image2_2: torch.Tensor, flow: torch.Tensor, conf: torch.Tensor,
+                      prev_motion: torch.Tensor, intrinsics: torch.Tensor) -> DepthMotion:
+        """The iterative depth-motion net on a flow, its confidence and the previous motion (with
+        ``dm2_prior``: the motion it returns is the previous motion corrected)."""
+        prev_motion = prev_motion.detach()
+        dm = self.dm2(pair, depth_motion_net_inputs(image2_2, flow, conf, prev_motion, intrinsics, self.compat))
+        return replace(dm, motion=dm.motion + prev_motion) if self.dm2_prior else dm
+
     def iterate(self, pair: torch.Tensor, image2_2: torch.Tensor, intrinsics: torch.Tensor,
                 prev: Prediction, gt2: GroundTruthInputs | None = None,
                 oracle: str | None = None) -> Prediction:
@@ -207,9 +220,7 @@ class DeMoN(nn.Module):
         flowconf5, flowconf2 = self.flow2(pair, extra)
         flow, conf = flowconf2[:, :2], flowconf2[:, 2:]
         dm_flow, dm_conf = (gt2.flow, _oracle_confidence(gt2.flow)) if oracle == "flow" else (flow, conf)
-        extra = depth_motion_net_inputs(image2_2, dm_flow, dm_conf, prev.motion.detach(), intrinsics,
-                                        self.compat)
-        dm = self.dm2(pair, extra)
+        dm = self.depth_motion2(pair, image2_2, dm_flow, dm_conf, prev.motion, intrinsics)
         return Prediction(flow, conf, flowconf5[:, :2], flowconf5[:, 2:], dm.inv_depth, dm.normals, dm.motion)
 
     def refine(self, image1: torch.Tensor, inv_depth2: torch.Tensor) -> torch.Tensor:

@@ -5,7 +5,7 @@ DeMoN's bootstrap flow net reads the two images alone; its iterative flow net re
 bootstrap net a prior in the same form, from a classical optical flow of the pair: OpenCV's DIS
 flow (Kroeger et al. 2016), the flow Base-FF reads (:mod:`demon_lab.baselines.methods`), computed
 at the input resolution and averaged down to level 2. The net predicts a correction of it
-(docs/cpu_scale.md, "A classical prior for the bootstrap flow net").
+(docs/cpu_scale.md, "Classical priors for the bootstrap nets").
 
 DeMoN's bootstrap depth-motion net reads the flow alone; its iterative one also reads the depth
 triangulated from the flow with the previous motion. ``model.dm1_prior=ransac`` gives the bootstrap
@@ -13,6 +13,10 @@ net a motion in the same form, from a classical solver on the flow it reads: Nis
 algorithm in OpenCV's USAC (a RANSAC variant) on a fixed subset of the level-2 flow vectors, the
 solver Base-Mat-F runs on the whole flow (:mod:`demon_lab.baselines.methods`) made cheap enough for
 every training step, and the net predicts a correction of that motion.
+
+DeMoN's iterative depth-motion net reads the previous pass's motion (through the depth triangulated
+with it) and predicts the motion anew. ``model.dm2_prior=previous`` makes it predict a correction
+of the previous motion instead, starting at none: a pass begins where the last one ended.
 """
 
 from __future__ import annotations
@@ -37,6 +41,8 @@ PRIORS = (None, "dis")
 """``model.flow1_prior``: none, or OpenCV's DIS flow."""
 MOTION_PRIORS = (None, "ransac")
 """``model.dm1_prior``: none, or 5-point RANSAC on the flow."""
+PREVIOUS_MOTION_PRIORS = (None, "previous")
+"""``model.dm2_prior``: none, or the previous pass's motion."""
 RANSAC_THRESHOLD_PX = 2.0
 """The 5-point RANSAC's inlier threshold in pixels at width 256, scaled to the flow's width."""
 RANSAC_POINTS = 256
@@ -56,6 +62,12 @@ def check_prior(prior: str | None) -> str | None:
 def check_motion_prior(prior: str | None) -> str | None:
     if prior not in MOTION_PRIORS:
         raise ValueError(f"dm1_prior: expected one of {MOTION_PRIORS}, got {prior!r}")
+    return prior
+
+
+def check_previous_motion_prior(prior: str | None) -> str | None:
+    if prior not in PREVIOUS_MOTION_PRIORS:
+        raise ValueError(f"dm2_prior: expected one of {PREVIOUS_MOTION_PRIORS}, got {prior!r}")
     return prior
 
 

@@ -14,7 +14,6 @@ import torch
 from demon_lab import losses
 from demon_lab.nets.chain import (
     Prediction,
-    depth_motion_net_inputs,
     flow_net_inputs,
     ground_truth_inputs,
 )
@@ -86,7 +85,7 @@ class DepthMotionStage(StageModule):
         if self.net == "dm1":
             dm = self.chain.depth_motion1(pair, image2_2, flow, conf, K)
         else:  # (the inputs are built without gradient)
-            dm = self.chain.dm2(pair, depth_motion_net_inputs(image2_2, flow, conf, prev.motion, K, self.chain.compat))
+            dm = self.chain.depth_motion2(pair, image2_2, flow, conf, prev.motion, K)
         ramp = self.ramp(2.0 if self.net == "dm1" else 1.0)
         return losses.depth_motion_loss(dm.inv_depth, dm.normals, dm.motion, gt, self.weights, ramp=ramp)
 

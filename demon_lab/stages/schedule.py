@@ -63,9 +63,10 @@ def describe_stage(cfg: DictConfig, name: str, upstream: dict[str, str]) -> dict
     }
 
 
-MODEL_OPTION_FROM = {"dm1_prior": "dm1"}
+MODEL_OPTION_FROM = {"dm1_prior": "dm1", "dm2_prior": "dm2"}
 """Model options that change only the nets from a stage on: the stages before it leave them out of
-their keys (so flow1 is shared between chains with and without ``dm1_prior``)."""
+their keys (so flow1 is shared between chains with and without ``dm1_prior``, and flow1, dm1 and
+flow2 between chains with and without ``dm2_prior``)."""
 
 
 def _stage_model(model: dict[str, Any], name: str, names: list[str]) -> dict[str, Any]:
@@ -91,12 +92,21 @@ def build_chain(cfg: DictConfig) -> DeMoN:
     ``model.weights`` loaded (:func:`demon_lab.weights.load_weights`); its nets in channels-last
     layout and compiled when ``model.channels_last`` / ``model.compile`` ask for it."""
     chain = DeMoN(cfg.model.variant, float(cfg.model.width), tuple(cfg.data.size), cfg.model.get("compat"),
-                  correlation_of(cfg.model), cfg.model.get("flow1_prior"), cfg.model.get("dm1_prior"))
+                  correlation_of(cfg.model), **priors_of(cfg.model))
     if cfg.model.get("weights"):
         from demon_lab.weights import load_weights
 
         load_weights(chain, cfg.model.weights)
     return prepare_nets(chain, bool(cfg.model.get("channels_last", False)), bool(cfg.model.get("compile", False)))
+
+
+PRIOR_KEYS = ("flow1_prior", "dm1_prior", "dm2_prior")
+"""The model options that give a net a prior (:mod:`demon_lab.nets.prior`)."""
+
+
+def priors_of(model: DictConfig) -> dict[str, str | None]:
+    """``model``'s prior options as the chain takes them (keyword arguments)."""
+    return {k: model.get(k) for k in PRIOR_KEYS}
 
 
 def correlation_of(model: DictConfig) -> tuple[int, int] | None:
