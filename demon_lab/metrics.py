@@ -409,7 +409,7 @@ class Column:
 
     ``key``: its name in MLflow (``test/<set>/<key>``) and in report specs; ``text``: the
     terminal tables' header (ASCII); ``label``: Markdown tables and figures; ``tex``: LaTeX;
-    ``paper``: its column in ``demon_lab/studies/paper_numbers.csv`` (None: the paper has none);
+    ``paper``: its column in ``ablations/paper_numbers.csv`` (None: the paper has none);
     ``unit``: what a figure's axis adds to the label (None: a count or a plain number).
     """
 

@@ -1,6 +1,6 @@
 """``python -m demon_lab.report NAME [--all] [--run]``: paper-style tables and figures from MLflow.
 
-A study spec (``demon_lab/studies/NAME.yaml``, named after its experiment) names the runs
+A study spec (``ablations/NAME.yaml``, named after its experiment) names the runs
 (``runs``: the override lists of ``python -m demon_lab -m`` commands), the seeds expected, the test
 sets (each mapped to the paper's dataset whose numbers stand beside it) and tables whose rows
 select runs by tag or param (``match``) and read one pass's metrics (``metrics``: ``it<k>``,
@@ -55,8 +55,8 @@ class ReportError(ValueError):
 
 
 def _shown(name: str, directory: Path) -> str:
-    """How messages name a spec file: ``demon_lab/studies/NAME.yaml`` for the shipped ones."""
-    return f"demon_lab/studies/{name}.yaml" if Path(directory) == STUDIES else str(Path(directory) / f"{name}.yaml")
+    """How messages name a spec file: ``ablations/NAME.yaml`` for the shipped ones."""
+    return f"ablations/{name}.yaml" if Path(directory) == STUDIES else str(Path(directory) / f"{name}.yaml")
 
 
 def study_of(experiment: str, directory: Path = STUDIES) -> str | None:
@@ -488,8 +488,8 @@ def run_spec(name: str, directory: Path = STUDIES, extra: Sequence[str] = ()) ->
 
 def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m demon_lab.report", description=__doc__.splitlines()[0])
-    parser.add_argument("names", nargs="*", help="study specs (demon_lab/studies/NAME.yaml)")
-    parser.add_argument("--all", action="store_true", help="every study spec in demon_lab/studies/")
+    parser.add_argument("names", nargs="*", help="study specs (ablations/NAME.yaml)")
+    parser.add_argument("--all", action="store_true", help="every study spec in ablations/")
     parser.add_argument("--run", action="store_true", help="first run the spec's jobs that MLflow lacks")
     parser.add_argument("--override", action="append", default=[], metavar="KEY=VALUE",
                         help="with --run: an override added to every command (e.g. data.root=DIR); repeatable")

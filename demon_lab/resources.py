@@ -1,7 +1,9 @@
 """Files that ship inside the package: the Hydra configs, the study specs and the bundled real pair.
 
-Located through the installed package (``importlib.resources``), so a wheel installed into any
-environment finds them wherever it is run from; nothing is looked up beside a source checkout.
+The configs and study specs sit at the top of the repository (``conf/``, ``ablations/``) and are
+installed as the packages ``demon_lab.conf`` and ``demon_lab.ablations`` (pyproject.toml). All three
+are located through the installed package (``importlib.resources``), the same way for a wheel and an
+editable install, so demon_lab finds them wherever it is run from.
 """
 
 from __future__ import annotations
@@ -10,9 +12,10 @@ from importlib.resources import files
 from pathlib import Path
 
 PACKAGE = Path(str(files("demon_lab")))
-CONF = PACKAGE / "conf"
-"""The Hydra config tree (``config_path`` of ``python -m demon_lab``)."""
-STUDIES = PACKAGE / "studies"
-"""One report spec per study, named after its experiment (``conf/experiment/NAME.yaml``)."""
+CONF = Path(str(files("demon_lab.conf")))
+"""The Hydra config tree (``config_path`` of ``python -m demon_lab``; ``conf/`` in the repository)."""
+STUDIES = Path(str(files("demon_lab.ablations")))
+"""One report spec per study, named after its experiment (``conf/experiment/NAME.yaml``), and the
+paper's numbers (``ablations/`` in the repository)."""
 DATA = PACKAGE / "data" / "real"
 """Real two-view samples that ship with demon_lab (``data/real/README.md``: origin and licence)."""

@@ -34,12 +34,31 @@ def test_no_file_reads_or_cites_anything_beside_the_repository():
 
 
 def test_the_package_finds_its_files_through_itself():
+    import demon_lab
     from demon_lab import resources
 
+    if Path(demon_lab.__file__).resolve().parent == ROOT / "demon_lab":  # installed from this checkout
+        # conf/ and ablations/ at the top of the repository, found through the package they install as
+        assert resources.CONF.resolve() == ROOT / "conf" and resources.STUDIES.resolve() == ROOT / "ablations"
     assert (resources.CONF / "config.yaml").is_file() and (resources.CONF / "experiment").is_dir()
     assert {p.stem for p in resources.STUDIES.glob("*.yaml")} >= {"iterations", "gt_flow_oracle", "baselines"}
     assert (resources.DATA / "sun3d_train_0.1m_to_0.2m_00000" / "poses.txt").is_file()
     assert (resources.DATA / "README.md").read_text().count("Licence") == 1
+
+
+def test_every_package_and_its_files_are_declared_for_the_wheel():
+    """pyproject.toml lists the packages explicitly (two of them are folders beside the code): every
+    folder of Python modules is listed, and each listed one exists where the mapping says."""
+    tomllib = pytest.importorskip("tomllib")
+    setup = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]
+    mapped = setup["package-dir"]
+    found = {".".join(p.parent.relative_to(ROOT).parts) for p in (ROOT / "demon_lab").rglob("*.py")
+             if "__pycache__" not in p.parts}
+    assert set(setup["packages"]) == found | set(mapped)
+    assert mapped == {"demon_lab.conf": "conf", "demon_lab.ablations": "ablations"}
+    for package, folder in mapped.items():
+        assert (ROOT / folder / "__init__.py").is_file(), package
+    assert any((ROOT / "conf").rglob("*.yaml")) and any((ROOT / "ablations").glob("*.yaml"))
 
 
 @pytest.mark.slow
@@ -59,9 +78,13 @@ def test_a_wheel_installed_elsewhere_runs_the_smoke_job_the_report_and_tests(tmp
         return subprocess.run([sys.executable, *args], cwd=work, env=env, capture_output=True, text=True,
                               timeout=timeout)
 
-    where = run("-c", "import demon_lab, demon_lab.resources as r; print(demon_lab.__file__); print(r.CONF)")
+    where = run("-c", "import demon_lab, demon_lab.resources as r; print(demon_lab.__file__); print(r.CONF); "
+                      "print(r.STUDIES); print(r.DATA)")
     assert where.returncode == 0, where.stderr
-    assert all(line.startswith(str(site)) for line in where.stdout.split()), where.stdout
+    assert len(where.stdout.split()) == 4 and all(line.startswith(str(site)) for line in where.stdout.split()), \
+        where.stdout
+    assert (site / "demon_lab" / "conf" / "config.yaml").is_file()
+    assert (site / "demon_lab" / "ablations" / "iterations.yaml").is_file()
     job = run("-m", "demon_lab", "scale=smoke", "eval.max_samples=1")
     assert job.returncode == 0, job.stderr[-3000:]
     assert "[demon_lab] results" in job.stdout and "sun3d_train_0.1m_to_0.2m_00000" in job.stdout

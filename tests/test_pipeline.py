@@ -327,7 +327,7 @@ EXPERIMENTS = sorted(p.stem for p in (resources.CONF / "experiment").glob("*.yam
 tests/test_released.py)."""
 SWEPT = [e for e in EXPERIMENTS if e not in ("cpu_recipe", "cpu_design", "cpu_motion", "cpu_prior")]
 """The experiments that declare a sweep (the probes of cpu_recipe, cpu_design, cpu_motion and cpu_prior are single
-jobs, the commands of their study specs in demon_lab/studies/, which tests/test_report.py composes)."""
+jobs, the commands of their study specs in ablations/, which tests/test_report.py composes)."""
 
 
 @pytest.mark.parametrize("experiment", SWEPT)
@@ -389,8 +389,8 @@ def test_longer_oracle_study_trains_dm1_four_times_the_profile_and_shares_flow1(
 
 @pytest.mark.parametrize("scale", ["smoke", "cpu", "paper"])
 def test_the_probe_options_are_absent_from_every_profile_and_key_only_their_stage_and_later(scale):
-    """level5_fade, gt_flow_warmup, easy_first and layers_first exist for probes (studies/cpu_recipe.yaml,
-    studies/cpu_design.yaml): no profile sets them,
+    """level5_fade, gt_flow_warmup, easy_first and layers_first exist for probes (ablations/cpu_recipe.yaml,
+    ablations/cpu_design.yaml): no profile sets them,
     so no key holds them; set, they key their own stage and, through the upstream keys, the later ones."""
     from demon_lab.stages.schedule import stage_dirs
 
