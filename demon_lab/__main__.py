@@ -1,4 +1,4 @@
-"""``python -m demon_lab [overrides]``: compose, validate, run each job (:mod:`demon_lab.job`).
+"""``python -m demon_lab [overrides]``: compose, validate, run each job (:mod:`demon_lab.app.job`).
 
 The configuration of every job (each combination of a ``-m`` sweep) is composed and validated
 before Hydra starts, so a bad key, type or value is one line and a non-zero exit, with no MLflow
@@ -53,9 +53,9 @@ def check(args: list[str]) -> str | None:
     from hydra.errors import HydraException
     from omegaconf.errors import OmegaConfBaseException
 
-    from demon_lab.config import ConfigError, drop_missing_sources
-    from demon_lab.execution import processes_launched_outside, world_size
-    from demon_lab.validate import validate
+    from demon_lab.core.execution import processes_launched_outside, world_size
+    from demon_lab.pipeline.config import ConfigError, drop_missing_sources
+    from demon_lab.pipeline.validate import validate
 
     with initialize_config_dir(CONF, version_base="1.3"):
         try:
@@ -93,7 +93,7 @@ def main() -> None:
             sys.exit(2)
     import hydra
 
-    from demon_lab.job import main_task
+    from demon_lab.app.job import main_task
 
     hydra.main(version_base="1.3", config_path=CONF, config_name="config")(main_task)()
 

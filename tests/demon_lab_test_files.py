@@ -6,8 +6,8 @@ from pathlib import Path
 
 import numpy as np
 
+from demon_lab.core.geometry import DEMON_INTRINSICS
 from demon_lab.data.readers.demon_h5 import write_demon_h5
-from demon_lab.geometry import DEMON_INTRINSICS
 
 
 def write_demon_test_files(root: Path, names: list[str], size: tuple[int, int] = (240, 320)) -> None:

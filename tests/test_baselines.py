@@ -9,11 +9,11 @@ import numpy as np
 import pytest
 import torch
 
-from demon_lab import geometry as geo
-from demon_lab import metrics
 from demon_lab.baselines import BaselineConfig, BaselineFailure, evaluate_baseline, summarize_baseline
 from demon_lab.baselines import methods as M
 from demon_lab.baselines import twoview as T
+from demon_lab.core import geometry as geo
+from demon_lab.core import metrics
 from demon_lab.data import synthetic as syn
 from demon_lab.data.datasets import SyntheticDataset
 from demon_lab.data.sample import make_sample, normalize_translation
@@ -97,7 +97,7 @@ def test_base_mat_f_on_exact_flow_recovers_motion_and_depth():
 def sun3d_test_pairs(tmp_path_factory):
     """The first 12 synthetic_sun3d test pairs at the cpu scale and at 256x192, with each pair's
     median triangulation angle (degrees)."""
-    from demon_lab.data_stats import pair_statistics
+    from demon_lab.tools.data_stats import pair_statistics
 
     cache = tmp_path_factory.mktemp("data")
     low = SyntheticDataset(preset="synthetic_sun3d", split="test", length=12, size=[96, 128], cache_dir=str(cache))
@@ -237,7 +237,7 @@ def _test_entry(dataset) -> dict:
 
 def test_baselines_read_each_pair_at_baseline_size_and_score_on_the_chains_ground_truth(sun3d_test_pairs):
     from demon_lab.data.datasets import MiddleburyDataset
-    from demon_lab.evaluate import baseline_inputs
+    from demon_lab.pipeline.evaluate import baseline_inputs
 
     low, high, _ = sun3d_test_pairs
     entry = _test_entry(low)
@@ -281,7 +281,8 @@ def test_a_baseline_job_reads_its_pairs_at_baseline_size(sun3d_test_pairs, monke
     and are scored on the chain's test set."""
     from omegaconf import OmegaConf
 
-    from demon_lab import evaluate, resources
+    from demon_lab import resources
+    from demon_lab.pipeline import evaluate
 
     low, _, _ = sun3d_test_pairs
     seen = []
@@ -443,7 +444,7 @@ def test_the_baselines_study_runs_and_reports_every_method():
     from omegaconf import OmegaConf
 
     from demon_lab import resources
-    from demon_lab.validate import METHODS as VALID
+    from demon_lab.pipeline.validate import METHODS as VALID
 
     assert "base_5pt" in M.METHODS and set(M.METHODS) <= set(VALID)
     sweep = OmegaConf.load(resources.CONF / "experiment" / "baselines.yaml").hydra.sweeper.params.method

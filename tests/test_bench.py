@@ -6,9 +6,9 @@ import re
 
 import torch
 
-from demon_lab import bench
-from demon_lab import geometry as geo
+from demon_lab.core import geometry as geo
 from demon_lab.data import throughput
+from demon_lab.tools import bench
 
 
 def test_write_section_replaces_only_its_own_section(tmp_path):

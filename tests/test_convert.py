@@ -18,10 +18,10 @@ import torch
 tf = pytest.importorskip("tensorflow", reason="needs TensorFlow to write checkpoints and run its ops "
                                               "(pip install tensorflow-cpu; CI installs it)")
 
-from demon_lab import convert  # noqa: E402
 from demon_lab.nets import DeMoN  # noqa: E402
 from demon_lab.nets.blocks import Conv, ConvPair, UpConv  # noqa: E402
-from demon_lab.tf_checkpoint import CheckpointFormatError, CheckpointReader  # noqa: E402
+from demon_lab.tools import convert  # noqa: E402
+from demon_lab.tools.tf_checkpoint import CheckpointFormatError, CheckpointReader  # noqa: E402
 
 HERE = Path(__file__).resolve().parent
 VARIABLES = HERE / "data" / "demon_v1_variables.txt"
@@ -303,7 +303,7 @@ def test_demon_test_files_run_the_converted_weights_into_mlflow(released, tmp_pa
     from mlflow.tracking import MlflowClient
     from test_pipeline import compose_config
 
-    from demon_lab.job import run
+    from demon_lab.app.job import run
 
     root = tmp_path / "testdata"
     write_demon_test_files(root, ["sun3d_test.h5", "nyu2_test.h5"])

@@ -10,7 +10,7 @@ import zlib
 
 import pytest
 
-from demon_lab import dashboard
+from demon_lab.reporting import dashboard
 from tests.conftest import free_port
 from tests.test_pipeline import cli, client, smoke_overrides
 

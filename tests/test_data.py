@@ -13,8 +13,8 @@ import pytest
 import torch
 from conftest import SUN3D_PAIR
 
-from demon_lab import geometry as geo
 from demon_lab import resources
+from demon_lab.core import geometry as geo
 from demon_lab.data import sample as smp
 from demon_lab.data import synthetic
 from demon_lab.data.datasets import (
@@ -222,7 +222,7 @@ def test_synthetic_samples_are_kept_in_memory_unchanged(tmp_path, monkeypatch):
 
 def test_synthetic_ground_truth_is_exact(rendered):
     sample, scene, _cam1, cam2 = rendered
-    # Where view-1 points land in view 2 (demon_lab.geometry), camera 2's exact ray cast through
+    # Where view-1 points land in view 2 (demon_lab.core.geometry), camera 2's exact ray cast through
     # that sub-pixel position hits the same point at the same depth.
     coords, inv2 = geo.reproject(sample["inv_depth"][None].double(), sample["motion"][None].double(),
                                  sample["intrinsics"][None].double())
@@ -349,7 +349,7 @@ def test_brightness_constancy_holds_on_rendered_pairs(preset):
 
 @pytest.mark.parametrize("preset", sorted(TABLE1))
 def test_presets_hit_table1_means_within_15_percent(preset):
-    from demon_lab.data_stats import dataset_statistics
+    from demon_lab.tools.data_stats import dataset_statistics
 
     ds = SyntheticDataset(preset, "train", length=500, size=(24, 32), supersample=1, cache_dir=False)
     stats = dataset_statistics([ds], 500)
@@ -663,7 +663,7 @@ def test_data_stats_command_writes_json(tmp_path):
 
 
 def test_zero_flow_epe_is_the_mean_ground_truth_flow_length(rendered):
-    from demon_lab.data_stats import pair_statistics
+    from demon_lab.tools.data_stats import pair_statistics
 
     rendered = rendered[0]
     flow = rendered["flow"]
@@ -676,8 +676,8 @@ def test_zero_flow_epe_is_the_mean_ground_truth_flow_length(rendered):
 
 
 def test_constant_depth_sc_inv_is_the_sc_inv_of_a_constant_prediction(rendered):
-    from demon_lab import metrics
-    from demon_lab.data_stats import pair_statistics
+    from demon_lab.core import metrics
+    from demon_lab.tools.data_stats import pair_statistics
 
     sample = rendered[0]
     gt = {"inv_depth": sample["inv_depth"][0].numpy(), "motion": sample["motion"].numpy(),
@@ -690,7 +690,7 @@ def test_constant_depth_sc_inv_is_the_sc_inv_of_a_constant_prediction(rendered):
 @pytest.mark.parametrize("t_z, near", [(-0.5, 0.0), (-0.95, 1.0), (-1.5, 1.0)])
 def test_pairs_with_points_near_or_behind_camera_2_are_counted(t_z, near):
     """Every point at depth 1 in view 1; camera 2 moves forward by -t_z: z2 = 1 + t_z."""
-    from demon_lab.data_stats import pair_statistics
+    from demon_lab.tools.data_stats import pair_statistics
 
     image = np.zeros((8, 8, 3), np.uint8)
     sample = smp.make_sample("plane", image, image, geo.DEMON_INTRINSICS, np.ones((8, 8)), [0, 0, 0, 0, 0, t_z])
@@ -711,7 +711,7 @@ def test_depth_ratio_filter_rejects_points_near_camera_2():
 def test_synthetic_pairs_have_no_points_near_camera_2():
     """The first 120 mvs training seeds: without the depth-ratio filter 5 of them hold points with
     z2 < 0.1 z1 (seeds 10, 79, 82, 83, 118 at 32x24); with it (the preset's default) none does."""
-    from demon_lab.data_stats import pair_statistics
+    from demon_lab.tools.data_stats import pair_statistics
 
     preset = synthetic.PRESETS["synthetic_mvs"]
     unfiltered = dataclasses.replace(preset, min_depth_ratio=0.0)
@@ -797,8 +797,8 @@ def test_layered_pairs_are_a_function_of_the_seed_and_their_flow_maps_view1_onto
     """Image 2 sampled at p + flow(p) is image 1 (up to bilinear resampling of 8-bit textures) where
     p + flow lands inside view 2 and the layer is not hidden there; with zero flow, or the flow's sign
     or normalisation wrong, it is not."""
+    from demon_lab.core.geometry import warp_image
     from demon_lab.data.layers import render_layers
-    from demon_lab.geometry import warp_image
 
     a, b = render_layers(3, (96, 128)), render_layers(3, (96, 128))
     assert all(torch.equal(a[k], b[k]) for k in ("image1", "image2", "flow"))
@@ -829,7 +829,7 @@ def test_layers_dataset_renders_a_new_pair_for_every_index_and_reads_as_flow_gro
     one, again, other = layers[(5, 123)], layers[5], layers[(6, 123)]
     assert torch.equal(one["image1"], again["image1"]) and not torch.equal(one["image1"], other["image1"])
     assert not torch.equal(one["image1"], LayersDataset((64, 96), seed=3)[5]["image1"])
-    from demon_lab import losses
+    from demon_lab.core import losses
 
     batch = torch.utils.data.default_collate([one, other])
     gt = losses.ground_truth(batch)

@@ -14,10 +14,10 @@ import torch
 from conftest import DEVICES, random_scene
 from torch.utils.data import default_collate
 
-from demon_lab import execution, losses
-from demon_lab import geometry as geo
+from demon_lab.core import execution, losses
+from demon_lab.core import geometry as geo
 from demon_lab.nets.chain import DeMoN
-from demon_lab.stages.modules import DepthMotionStage, FlowStage
+from demon_lab.pipeline.stages.modules import DepthMotionStage, FlowStage
 
 WEIGHTS = losses.preset("released_code")
 
@@ -122,7 +122,7 @@ def test_losses_and_their_gradients_on_the_device_match_float64(device):
 @pytest.mark.parametrize("device", DEVICES)
 def test_evaluation_metrics_on_the_device_match_the_cpu(device):
     from demon_lab.data.datasets import SyntheticDataset
-    from demon_lab.evaluate import evaluate_dataset
+    from demon_lab.pipeline.evaluate import evaluate_dataset
 
     torch.manual_seed(2)
     chain = DeMoN("v1", 0.125, (64, 64)).eval()

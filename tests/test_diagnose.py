@@ -1,4 +1,4 @@
-"""The per-pass diagnosis of a trained chain (demon_lab.diagnose)."""
+"""The per-pass diagnosis of a trained chain (demon_lab.tools.diagnose)."""
 
 from __future__ import annotations
 
@@ -8,10 +8,10 @@ import pytest
 import torch
 from conftest import random_scene
 
-from demon_lab import geometry as geo
-from demon_lab import losses
-from demon_lab.diagnose import diagnose_batch, format_table, summarize
+from demon_lab.core import geometry as geo
+from demon_lab.core import losses
 from demon_lab.nets.chain import Prediction
+from demon_lab.tools.diagnose import diagnose_batch, format_table, summarize
 
 
 class ScriptedChain:

@@ -1,4 +1,4 @@
-"""Precision, memory layout and compilation (demon_lab.execution): the float32 islands inside
+"""Precision, memory layout and compilation (demon_lab.core.execution): the float32 islands inside
 autocast, the keys, the one-line refusals, and the smoke pipeline in bf16-mixed with channels-last
 (into MLflow, within a stated tolerance of float32) and with compiled nets."""
 
@@ -13,13 +13,13 @@ from conftest import random_scene
 from omegaconf import open_dict
 from test_pipeline import client, compose_config, smoke_overrides
 
-from demon_lab import execution, losses
-from demon_lab import geometry as geo
-from demon_lab.config import ConfigError
-from demon_lab.identity import run_key
+from demon_lab.core import execution, losses
+from demon_lab.core import geometry as geo
 from demon_lab.nets.chain import DeMoN, depth_motion_net_inputs, flow_net_inputs, ground_truth_inputs
-from demon_lab.stages.schedule import stage_dirs
-from demon_lab.validate import validate
+from demon_lab.pipeline.config import ConfigError
+from demon_lab.pipeline.identity import run_key
+from demon_lab.pipeline.stages.schedule import stage_dirs
+from demon_lab.pipeline.validate import validate
 
 
 def test_precision_names_are_lightnings():
@@ -199,7 +199,7 @@ def test_a_baseline_job_ignores_the_chains_precision(tmp_path):
 
 
 def _job(tmp, *extra):
-    from demon_lab.job import run
+    from demon_lab.app.job import run
 
     threads = torch.get_num_threads()
     try:
@@ -250,7 +250,7 @@ def test_bf16_mixed_with_channels_last_runs_the_smoke_pipeline_into_mlflow_withi
 
 
 def test_compile_trains_a_smoke_stage_or_is_refused_in_one_line(tmp_path):
-    from demon_lab.stages.training import prepare_chain
+    from demon_lab.pipeline.stages.training import prepare_chain
 
     cfg = compose_config(smoke_overrides(tmp_path, "model.compile=true", "schedule.until=flow1", "iterations=0",
                                          "trainer.accelerator=cpu"))
@@ -284,7 +284,7 @@ def test_compile_trains_a_smoke_stage_or_is_refused_in_one_line(tmp_path):
 
 def test_evaluation_runs_the_nets_in_the_precision_asked_for():
     from demon_lab.data.datasets import SyntheticDataset
-    from demon_lab.evaluate import evaluate_dataset
+    from demon_lab.pipeline.evaluate import evaluate_dataset
 
     torch.manual_seed(3)
     chain = DeMoN("v1", 0.125, (64, 64)).eval()
@@ -307,7 +307,7 @@ def test_the_evaluation_device_follows_the_training_accelerator(tmp_path, caplog
     assert execution.resolve_accelerator("cuda") == "cuda" and execution.resolve_accelerator("cpu") == "cpu"
     if not torch.cuda.is_available():
         cfg = compose_config(smoke_overrides(tmp_path, "trainer.accelerator=cuda"))
-        with caplog.at_level("INFO", logger="demon_lab.execution"):
+        with caplog.at_level("INFO", logger="demon_lab.core.execution"):
             assert execution.evaluation_device(cfg) == torch.device("cpu")
         assert "no cuda device here, evaluating on the CPU" in caplog.text
 
@@ -330,7 +330,7 @@ def test_float32_jobs_keep_the_keys_they_had(overrides):
 
 
 def test_precision_keys_only_what_runs_a_net(tmp_path):
-    from demon_lab.identity import sweep_key
+    from demon_lab.pipeline.identity import sweep_key
 
     base = smoke_overrides(tmp_path, "method=base_ff")
     assert run_key(compose_config(base)) == run_key(compose_config([*base, "precision=bf16-mixed"]))

@@ -1,4 +1,4 @@
-"""demon_lab.geometry: analytic cases, round trips, real data and OpenCV cross-checks."""
+"""demon_lab.core.geometry: analytic cases, round trips, real data and OpenCV cross-checks."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ import pytest
 import torch
 from conftest import DEVICES, random_scene, rotation_about
 
-from demon_lab import geometry as geo
+from demon_lab.core import geometry as geo
 
 K_DEMON = torch.tensor([geo.DEMON_INTRINSICS], dtype=torch.float64)
 

@@ -1,4 +1,4 @@
-"""The identity of runs, stages and sweeps lives in demon_lab.identity: the output-folder exclusions
+"""The identity of runs, stages and sweeps lives in demon_lab.pipeline.identity: the output-folder exclusions
 agree with the non-semantic keys, and keys do not depend on where the package is installed."""
 
 from __future__ import annotations
@@ -6,8 +6,9 @@ from __future__ import annotations
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
-from demon_lab import config, identity, resources
-from demon_lab.stages.schedule import stage_dirs
+from demon_lab import resources
+from demon_lab.pipeline import config, identity
+from demon_lab.pipeline.stages.schedule import stage_dirs
 
 
 def _compose(*overrides: str, hydra: bool = False):

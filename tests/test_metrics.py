@@ -1,4 +1,4 @@
-"""demon_lab.metrics: hand-computed expectations for DeMoN's evaluation protocol."""
+"""demon_lab.core.metrics: hand-computed expectations for DeMoN's evaluation protocol."""
 
 from __future__ import annotations
 
@@ -9,8 +9,8 @@ import pytest
 import torch
 from conftest import random_scene, rotation_about
 
-from demon_lab import geometry as geo
-from demon_lab import metrics
+from demon_lab.core import geometry as geo
+from demon_lab.core import metrics
 
 LN2 = math.log(2.0)
 

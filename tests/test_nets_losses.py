@@ -8,7 +8,8 @@ from dataclasses import replace
 import pytest
 import torch
 
-from demon_lab import losses, resources
+from demon_lab import resources
+from demon_lab.core import losses
 from demon_lab.nets import DeMoN, DepthMotionNet, FlowNet, RefineNet
 
 
@@ -199,7 +200,7 @@ def test_every_term_is_reported_and_weighted():
 
 
 def test_released_learning_rate_is_constant_for_a_third_then_decays_quadratically_to_1e6():
-    from demon_lab.stages.base import learning_rate
+    from demon_lab.pipeline.stages.base import learning_rate
 
     lr = lambda step: learning_rate(step, 300, 1e-3, "released")  # noqa: E731
     assert lr(0) == lr(100) == 1e-3
@@ -208,7 +209,7 @@ def test_released_learning_rate_is_constant_for_a_third_then_decays_quadraticall
 
 
 def test_supplementary_learning_rate_drops_20_percent_at_each_milestone():
-    from demon_lab.stages.base import learning_rate
+    from demon_lab.pipeline.stages.base import learning_rate
 
     lr = [learning_rate(s, 100, 1.0, "supplementary") for s in (0, 39, 40, 60, 80, 99)]
     assert lr == pytest.approx([1.0, 1.0, 0.8, 0.64, 0.512, 0.512])
@@ -217,7 +218,7 @@ def test_supplementary_learning_rate_drops_20_percent_at_each_milestone():
 
 
 def test_warmup_rises_linearly_to_the_schedule():
-    from demon_lab.stages.base import learning_rate
+    from demon_lab.pipeline.stages.base import learning_rate
 
     assert learning_rate(0, 3000, 1e-3, "released", warmup_steps=100) == pytest.approx(1e-5)
     assert learning_rate(49, 3000, 1e-3, "released", warmup_steps=100) == pytest.approx(5e-4)
@@ -248,7 +249,7 @@ def _terms_at(stage, batch, gt, steps) -> dict[int, dict]:
 
 @pytest.mark.parametrize("sig_start", [0.0, 0.5, 1.0])
 def test_flow_stage_sig_terms_start_at_sig_start(sig_start):
-    from demon_lab.stages.modules import FlowStage
+    from demon_lab.pipeline.stages.modules import FlowStage
 
     torch.manual_seed(0)
     chain = DeMoN("v1", width=0.0625, size=(64, 64))
@@ -316,7 +317,7 @@ def test_the_depth_sig_terms_keep_their_eps_and_ramp():
 def test_flow_stage_level5_terms_fade_over_level5_fade(fade):
     """DeMoN fades the level-5 terms out over the first third of a flow stage; ``level5_fade`` sets
     that fraction (3: at the stage's end the term is still at 1 - (1/3)^2 of its weight)."""
-    from demon_lab.stages.modules import FlowStage
+    from demon_lab.pipeline.stages.modules import FlowStage
 
     torch.manual_seed(0)
     chain = DeMoN("v1", width=0.0625, size=(64, 64))
@@ -340,7 +341,7 @@ def test_depth_motion_stage_is_fed_ground_truth_flow_for_gt_flow_warmup(warmup):
     from unittest import mock
 
     from demon_lab.nets.chain import ground_truth_inputs
-    from demon_lab.stages.modules import DepthMotionStage
+    from demon_lab.pipeline.stages.modules import DepthMotionStage
 
     torch.manual_seed(0)
     chain = DeMoN("v1", width=0.0625, size=(64, 64))
@@ -375,7 +376,7 @@ def test_depth_motion_stage_is_fed_ground_truth_flow_for_gt_flow_warmup(warmup):
 def test_iterative_stage_flow_sig_terms_start_at_sig_start(sig_start):
     """DeMoN's iterative stage starts at full weights (sig_start 0); with sig_start the flow sig
     terms are 0 before that fraction of the stage and at full weight after; depth-sig unaffected."""
-    from demon_lab.stages.modules import IterativeStage
+    from demon_lab.pipeline.stages.modules import IterativeStage
 
     torch.manual_seed(0)
     chain = DeMoN("v1", width=0.0625, size=(64, 64))
@@ -418,7 +419,7 @@ def test_flow_sig_gradient_swamps_the_flow_term_near_zero_flow():
 def test_ground_truth_is_computed_as_a_loss_reads_it_with_the_eager_values():
     """The loss targets are DeMoN's prepare_ground_truth_tensors, tensor by tensor, computed on
     first access: a flow stage builds no normals and no deeper pyramid than level 5 needs."""
-    from demon_lab import geometry as geo
+    from demon_lab.core import geometry as geo
 
     torch.manual_seed(5)
     batch = {"inv_depth": torch.rand(2, 1, 64, 96) + 0.2, "motion": torch.tensor([[0.02, 0.1, 0, 1.0, 0.1, 0]] * 2),
@@ -552,8 +553,8 @@ def test_the_bootstrap_flow_net_with_a_prior_predicts_a_correction_of_it():
 
 
 def test_the_ransac_motion_prior_recovers_the_motion_from_its_flow():
-    from demon_lab import geometry as geo
-    from demon_lab import metrics
+    from demon_lab.core import geometry as geo
+    from demon_lab.core import metrics
     from demon_lab.data import synthetic
     from demon_lab.nets.prior import ransac_motion
 

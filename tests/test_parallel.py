@@ -14,7 +14,7 @@ from tests.test_pipeline import cli, client, smoke_overrides
 WRITER = """
 import sys, time
 from pathlib import Path
-from demon_lab.tracking import Tracker
+from demon_lab.pipeline.tracking import Tracker
 uri, worker, count, gate = sys.argv[1], int(sys.argv[2]), int(sys.argv[3]), Path(sys.argv[4])
 while not gate.exists():  # every writer opens the fresh store at the same moment
     time.sleep(0.01)
@@ -103,7 +103,7 @@ def test_launcher_workers_get_no_store_client():
     """The sweep callback travels to joblib/submitit workers pickled, without its client."""
     import pickle
 
-    from demon_lab.callbacks import MultirunTracking
+    from demon_lab.app.callbacks import MultirunTracking
 
     callback = MultirunTracking()
     callback.tracker, callback.parent = object(), "abc"

@@ -17,7 +17,7 @@ from hydra import compose, initialize_config_dir
 
 from demon_lab import resources
 from demon_lab.__main__ import CONF, check
-from demon_lab.identity import run_key
+from demon_lab.pipeline.identity import run_key
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -45,7 +45,7 @@ def cli(*args: str, cwd: Path) -> subprocess.CompletedProcess:
 
 @pytest.fixture(scope="module")
 def smoke_run(tmp_path_factory):
-    from demon_lab.job import run
+    from demon_lab.app.job import run
 
     tmp = tmp_path_factory.mktemp("smoke")
     threads = torch.get_num_threads()
@@ -124,7 +124,7 @@ def test_time_to_accuracy_figure_reads_the_flow1_stage_of_each_counted_run(smoke
 
     import yaml
 
-    from demon_lab import report, report_figures
+    from demon_lab.reporting import figures, report
 
     tmp, result = smoke_run
     uri = f"sqlite:///{tmp}/mlflow.db"
@@ -148,7 +148,7 @@ def test_time_to_accuracy_figure_reads_the_flow1_stage_of_each_counted_run(smoke
     assert (tmp_path / "out" / "figures" / "tta_time_to_accuracy.png") in paths.values()
     (minutes, ratios), = [d for d in drawn if d]
     c = client(tmp)
-    stage = report_figures.flow1_stage_run(c, {"run_id": result["run_id"],
+    stage = figures.flow1_stage_run(c, {"run_id": result["run_id"],
                                                "experiment_id": c.get_run(result["run_id"]).info.experiment_id})
     history = sorted((m.timestamp, m.value) for m in c.get_metric_history(stage.info.run_id,
                                                                           "val/synthetic_sun3d/epe"))
@@ -159,7 +159,7 @@ def test_time_to_accuracy_figure_reads_the_flow1_stage_of_each_counted_run(smoke
     job = c.get_run(result["run_id"])
     cached = {"run_id": "a-job-that-found-flow1-in-the-cache", "experiment_id": job.info.experiment_id,
               "artifact_uri": job.info.artifact_uri}
-    assert report_figures.flow1_stage_run(c, cached).info.run_id == stage.info.run_id
+    assert figures.flow1_stage_run(c, cached).info.run_id == stage.info.run_id
 
 
 def test_per_sample_metrics_table_matches_the_logged_means(smoke_run):
@@ -177,7 +177,7 @@ def test_per_sample_metrics_table_matches_the_logged_means(smoke_run):
 
 
 def test_second_identical_invocation_is_skipped_and_stages_are_cached(smoke_run):
-    from demon_lab.job import run
+    from demon_lab.app.job import run
 
     tmp, result = smoke_run
     again = run(compose_config(smoke_overrides(tmp)))
@@ -195,7 +195,7 @@ def test_diagnosis_reads_the_cached_chain_and_needs_it(smoke_run, tmp_path, caps
     0..iterations; on an empty cache it names the missing stages and exits 2 (trains nothing)."""
     import json
 
-    from demon_lab.diagnose import main
+    from demon_lab.tools.diagnose import main
 
     tmp, _ = smoke_run
     out = tmp_path / "diag.json"
@@ -217,8 +217,8 @@ def test_diagnosis_reads_the_cached_chain_and_needs_it(smoke_run, tmp_path, caps
 
 
 def test_a_job_that_raises_leaves_its_run_failed(tmp_path):
+    from demon_lab.app.job import run
     from demon_lab.data.sample import DataError
-    from demon_lab.job import run
 
     unreadable = tmp_path / "not_a_pair"  # exists (validation passes), holds no pair: the evaluation raises
     unreadable.mkdir()
@@ -358,9 +358,9 @@ def test_checking_a_configuration_imports_neither_lightning_nor_mlflow():
 
 
 def test_the_stage_kinds_and_rate_schedules_a_config_may_name_are_the_implemented_ones():
-    from demon_lab.stages.base import learning_rate
-    from demon_lab.stages.modules import STAGE_KINDS
-    from demon_lab.stages.schedule import LR_SCHEDULES, STAGE_KIND_NAMES
+    from demon_lab.pipeline.stages.base import learning_rate
+    from demon_lab.pipeline.stages.modules import STAGE_KINDS
+    from demon_lab.pipeline.stages.schedule import LR_SCHEDULES, STAGE_KIND_NAMES
 
     assert STAGE_KIND_NAMES == tuple(STAGE_KINDS)
     for schedule in LR_SCHEDULES:
@@ -375,8 +375,8 @@ def test_experiments_exist_for_every_study():
 
 @pytest.mark.parametrize("scale", ["smoke", "cpu", "paper"])
 def test_longer_oracle_study_trains_dm1_four_times_the_profile_and_shares_flow1(scale):
-    import demon_lab.config  # noqa: F401  (registers the ${times:} resolver, as the app does)
-    from demon_lab.stages.schedule import stage_dirs
+    import demon_lab.pipeline.config  # noqa: F401  (registers the ${times:} resolver, as the app does)
+    from demon_lab.pipeline.stages.schedule import stage_dirs
 
     with initialize_config_dir(CONF, version_base="1.3"):
         base = compose("config", [f"scale={scale}", "+experiment=gt_flow_oracle", "oracle=flow"])
@@ -392,7 +392,7 @@ def test_the_probe_options_are_absent_from_every_profile_and_key_only_their_stag
     """level5_fade, gt_flow_warmup, easy_first and layers_first exist for probes (ablations/cpu_recipe.yaml,
     ablations/cpu_design.yaml): no profile sets them,
     so no key holds them; set, they key their own stage and, through the upstream keys, the later ones."""
-    from demon_lab.stages.schedule import stage_dirs
+    from demon_lab.pipeline.stages.schedule import stage_dirs
 
     with initialize_config_dir(CONF, version_base="1.3"):
         plain = compose("config", [f"scale={scale}"])
@@ -417,9 +417,9 @@ def test_the_probe_options_are_absent_from_every_profile_and_key_only_their_stag
 ], ids=["correlation", "flow1_prior"])
 @pytest.mark.parametrize("scale", ["smoke", "cpu", "paper"])
 def test_a_flow_net_option_keys_every_stage_and_the_run_and_is_absent_by_default(option, key, built, scale):
-    import demon_lab.config  # noqa: F401  (registers the resolvers, as the app does)
-    from demon_lab.identity import run_key, semantic_config
-    from demon_lab.stages.schedule import build_chain, stage_dirs
+    import demon_lab.pipeline.config  # noqa: F401  (registers the resolvers, as the app does)
+    from demon_lab.pipeline.identity import run_key, semantic_config
+    from demon_lab.pipeline.stages.schedule import build_chain, stage_dirs
 
     with initialize_config_dir(CONF, version_base="1.3"):
         plain = compose("config", [f"scale={scale}"])
@@ -433,9 +433,9 @@ def test_a_flow_net_option_keys_every_stage_and_the_run_and_is_absent_by_default
 
 @pytest.mark.parametrize(("option", "first"), [("dm1_prior=ransac", "dm1"), ("dm2_prior=previous", "dm2")])
 def test_a_motion_prior_keys_the_stages_from_its_net_on_and_shares_those_before(option, first):
-    import demon_lab.config  # noqa: F401  (registers the resolvers, as the app does)
-    from demon_lab.identity import run_key
-    from demon_lab.stages.schedule import build_chain, stage_dirs
+    import demon_lab.pipeline.config  # noqa: F401  (registers the resolvers, as the app does)
+    from demon_lab.pipeline.identity import run_key
+    from demon_lab.pipeline.stages.schedule import build_chain, stage_dirs
 
     key, value = option.split("=")
     with initialize_config_dir(CONF, version_base="1.3"):
@@ -454,8 +454,8 @@ def test_a_motion_prior_keys_the_stages_from_its_net_on_and_shares_those_before(
 def test_train_stage_hands_the_probe_options_to_their_stages(tmp_path, monkeypatch):
     """A flow stage gets level5_fade, a depth-motion stage gt_flow_warmup, from the stage's config;
     a stage without them gets DeMoN's values (its module's defaults)."""
-    from demon_lab.stages import training
-    from demon_lab.stages.schedule import build_chain, stage_dirs
+    from demon_lab.pipeline.stages import training
+    from demon_lab.pipeline.stages.schedule import build_chain, stage_dirs
 
     class Built(Exception):
         pass
@@ -488,8 +488,8 @@ def test_train_stage_draws_its_samples_with_the_stage_curriculum(tmp_path, monke
     """easy_first of a stage reaches its sampler, with each source ordered by flow_order; a stage
     without it draws with the plain sampler."""
     from demon_lab.data.datasets import flow_order
-    from demon_lab.stages import training
-    from demon_lab.stages.schedule import build_chain, stage_dirs
+    from demon_lab.pipeline.stages import training
+    from demon_lab.pipeline.stages.schedule import build_chain, stage_dirs
 
     class Built(Exception):
         pass
@@ -519,9 +519,9 @@ def test_a_flow1_stage_starts_on_fresh_2d_layers_and_trains_on_them(tmp_path, mo
     and seed (weight 0: none after the lead); a flow1 step on a batch of layers has a finite loss that
     the flow net's every parameter gets a gradient from."""
     from demon_lab.data.datasets import LayersDataset
-    from demon_lab.stages import training
-    from demon_lab.stages.modules import FlowStage
-    from demon_lab.stages.schedule import build_chain, stage_dirs
+    from demon_lab.pipeline.stages import training
+    from demon_lab.pipeline.stages.modules import FlowStage
+    from demon_lab.pipeline.stages.schedule import build_chain, stage_dirs
 
     class Built(Exception):
         pass
@@ -549,7 +549,7 @@ def test_a_flow1_stage_starts_on_fresh_2d_layers_and_trains_on_them(tmp_path, mo
     assert not any(isinstance(d, LayersDataset) for d in loaders[1].dataset.datasets)
     module = FlowStage(chain, weights=dict(cfg.loss), steps=10, lr=1e-4)
     pairs = torch.utils.data.default_collate([sources[-1][i] for i in range(2)])
-    from demon_lab import losses
+    from demon_lab.core import losses
 
     loss, terms = module.stage_loss(pairs, losses.ground_truth(pairs))
     assert torch.isfinite(loss) and terms["flow2"] > 0
@@ -561,8 +561,8 @@ def test_restarts_screen_starts_of_flow1_and_the_stage_continues_from_the_best(t
     """restarts=[1, 1] is the plain stage, to the last bit (start 0 is the chain's own initialisation and
     the stage continues from its checkpoint as a resumed stage does); restarts=[3, 1] trains three starts
     for one step, logs each one's held-apart EPE, continues from the lowest and keeps only its checkpoint."""
-    from demon_lab.stages import training
-    from demon_lab.stages.schedule import build_chain, stage_dirs
+    from demon_lab.pipeline.stages import training
+    from demon_lab.pipeline.stages.schedule import build_chain, stage_dirs
 
     class Recorder:
         def __init__(self):
@@ -615,7 +615,7 @@ def test_a_stage_key_holds_only_the_loss_weights_that_stage_reads():
     through the upstream key, its dm1) is its own. no_sig changes the flow sig weights, which the
     cpu scale's flow1 never reads (sig_start 1), so there it shares supplementary's flow1 too; at
     the paper scale (sig terms from step 0) it does not."""
-    from demon_lab.stages.schedule import stage_dirs
+    from demon_lab.pipeline.stages.schedule import stage_dirs
 
     keys = {}
     with initialize_config_dir(CONF, version_base="1.3"):
@@ -637,7 +637,7 @@ def test_times_resolver_takes_integers_only():
     from omegaconf import OmegaConf
     from omegaconf.errors import InterpolationResolutionError
 
-    import demon_lab.config  # noqa: F401  (registers the resolver)
+    import demon_lab.pipeline.config  # noqa: F401  (registers the resolver)
 
     assert OmegaConf.create({"n": 3, "m": "${times:${n},4}"}).m == 12
     with pytest.raises(InterpolationResolutionError, match="times: expected two integers"):
@@ -670,7 +670,7 @@ def test_killed_training_stage_resumes_from_its_checkpoint(tmp_path):
 
     step_at_kill = torch.load(checkpoints[0], map_location="cpu", weights_only=False)["global_step"]
     assert 0 < step_at_kill < 400
-    from demon_lab.job import run
+    from demon_lab.app.job import run
 
     result = run(compose_config(args))
     assert result["status"] == "finished"

@@ -13,9 +13,9 @@ import pytest
 import torch
 from test_pipeline import cli, client, compose_config, smoke_overrides
 
-from demon_lab import geometry as geo
-from demon_lab import metrics
 from demon_lab.__main__ import check
+from demon_lab.core import geometry as geo
+from demon_lab.core import metrics
 from demon_lab.nets import DeMoN
 from demon_lab.nets.chain import depth_motion_net_inputs, flow_net_inputs
 
@@ -53,7 +53,7 @@ def test_compat_geometry_is_demons_kernels():
     well-conditioned pixels."""
     import lmbspecialops_reference as ref
 
-    from demon_lab import geometry as geo
+    from demon_lab.core import geometry as geo
 
     rng = np.random.default_rng(2)
     image = rng.uniform(-0.5, 0.5, (1, 3, 12, 16)).astype(np.float32)
@@ -141,8 +141,8 @@ def test_weights_of_another_width_are_named_with_the_fix(tmp_path):
 
 
 def test_keys_name_the_weights_by_content(tmp_path):
-    from demon_lab.identity import run_key
-    from demon_lab.stages.schedule import stage_dirs
+    from demon_lab.pipeline.identity import run_key
+    from demon_lab.pipeline.stages.schedule import stage_dirs
 
     a = _smoke_weights(tmp_path / "a.pt")
     moved = tmp_path / "elsewhere" / "a.pt"
@@ -162,8 +162,8 @@ def test_keys_name_the_weights_by_content(tmp_path):
 
 
 def test_stage_files_and_partial_state_dicts_load_net_by_net(tmp_path):
-    from demon_lab.stages.cache import CheckpointError
-    from demon_lab.weights import load_weights
+    from demon_lab.pipeline.stages.cache import CheckpointError
+    from demon_lab.pipeline.weights import load_weights
 
     source = DeMoN("v1", 0.0625, (64, 64))
     torch.save({"dm1": source.dm1.state_dict()}, tmp_path / "stage.pt")  # a stage cache file
@@ -195,7 +195,7 @@ def test_the_iteration_sweep_of_given_weights_trains_nothing(tmp_path):
     assert not [r for r in runs if r.data.tags.get("demon_lab.kind") == "stage"]
     # the loaded weights are what was evaluated: pass 0 of both jobs is the same chain, and it is
     # not the untrained initialisation that train=false evaluates without model.weights
-    from demon_lab.job import run
+    from demon_lab.app.job import run
 
     untrained = run(compose_config(smoke_overrides(tmp_path, "iterations=0", "train=false", "threads=1")))
     key = "test/synthetic_sun3d/it0/l1_inv"
@@ -224,7 +224,7 @@ def test_eigen_crop_and_poseless_pairs_score_as_demons_evaluation():
 def test_demon_test_files_are_prepared_with_demons_protocol(tmp_path):
     from demon_lab_test_files import write_demon_test_files
 
-    from demon_lab.config import drop_missing_sources, instantiate
+    from demon_lab.pipeline.config import drop_missing_sources, instantiate
 
     write_demon_test_files(tmp_path, ["sun3d_test.h5", "nyu2_test.h5"], size=(120, 160))
     cfg = compose_config(["data=demon_test", f"data.root={tmp_path}", "scale=paper"])
@@ -277,9 +277,9 @@ def test_the_released_model_study_runs_and_reports_beside_the_paper(tmp_path):
 def test_fine_tuning_starts_from_the_weights_and_a_zero_step_stage_keeps_them(tmp_path):
     """Table 2's oracle study started from given weights: flow1 kept as it is (0 steps), dm1
     trained with ground-truth flow from the weights' dm1 (not from a fresh initialisation)."""
-    from demon_lab.job import run
-    from demon_lab.stages.cache import load_checkpoint
-    from demon_lab.stages.schedule import stage_dirs
+    from demon_lab.app.job import run
+    from demon_lab.pipeline.stages.cache import load_checkpoint
+    from demon_lab.pipeline.stages.schedule import stage_dirs
 
     weights = _smoke_weights(tmp_path / "chain.pt", seed=7)
     given = torch.load(weights, weights_only=True)
@@ -308,8 +308,8 @@ def test_demon_train_trains_on_demons_files_and_tests_on_its_test_files(tmp_path
     others named and skipped) and the job tests on its test files; diagnose reads given weights."""
     from demon_lab_test_files import write_demon_test_files
 
-    from demon_lab import diagnose
-    from demon_lab.job import run
+    from demon_lab.app.job import run
+    from demon_lab.tools import diagnose
 
     root = tmp_path / "data"
     write_demon_test_files(root, ["sun3d_train_0.1m_to_0.2m.h5", "scenes11_train.h5", "sun3d_test.h5"],
@@ -351,7 +351,7 @@ def test_evaluating_given_weights_needs_the_nets_it_runs(tmp_path):
     error = check(smoke_overrides(tmp_path, bootstrap, "train=false"))  # iterations=3 by default
     assert error == (f"model.weights: {tmp_path / 'bootstrap.pt'} has no flow2, dm2, which train=false with "
                      "iterations=3 evaluates (the refinement net is optional)")
-    from demon_lab.job import run
+    from demon_lab.app.job import run
 
     result = run(compose_config(smoke_overrides(tmp_path, bootstrap, "train=false", "iterations=0", "threads=1")))
     assert result["status"] == "finished"

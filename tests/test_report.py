@@ -13,8 +13,10 @@ import pandas as pd
 import pytest
 import yaml
 
-from demon_lab import report, resources, tracking
-from demon_lab.tracking import TAG, Tracker
+from demon_lab import resources
+from demon_lab.pipeline import tracking
+from demon_lab.pipeline.tracking import TAG, Tracker
+from demon_lab.reporting import report
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -253,7 +255,7 @@ def test_report_from_real_smoke_runs(tmp_path):
 
 def test_a_report_redraws_only_its_own_figures(tmp_path):
     """Regenerating gt_flow_oracle leaves gt_flow_oracle_long's figures alone."""
-    from demon_lab.report_figures import study_figures
+    from demon_lab.reporting.figures import study_figures
 
     names = ["gt_flow_oracle_motion_a.png", "gt_flow_oracle_qualitative_GT_flow_a.png",
              "gt_flow_oracle_long_motion_a.png", "gt_flow_oracle_long_pixel_errors_a.png", "iterations_iterations.png"]

@@ -13,13 +13,13 @@ from pathlib import Path
 import pytest
 import torch
 
-from demon_lab.stages.cache import CheckpointError, atomic_torch_save, load_checkpoint
-from demon_lab.tracking import git_state, version_tags
+from demon_lab.pipeline.stages.cache import CheckpointError, atomic_torch_save, load_checkpoint
+from demon_lab.pipeline.tracking import git_state, version_tags
 from tests.test_pipeline import cli, client, compose_config, smoke_overrides
 
 WRITER = """
 import sys, torch
-from demon_lab.stages.cache import atomic_torch_save
+from demon_lab.pipeline.stages.cache import atomic_torch_save
 path, i = sys.argv[1], 0
 while True:
     i += 1
@@ -55,7 +55,7 @@ def test_truncated_and_foreign_checkpoints_are_one_line_errors(tmp_path):
 
 
 def _stage_weights(tmp: Path, *extra: str) -> list[Path]:
-    from demon_lab.stages.schedule import stage_dirs
+    from demon_lab.pipeline.stages.schedule import stage_dirs
 
     return [d.weights for d in stage_dirs(compose_config(smoke_overrides(tmp, *extra)))]
 
@@ -100,13 +100,13 @@ KILL_POINTS = {
 
 _HOLD_AFTER_METRICS = """
 import time
-import demon_lab.tables
+import demon_lab.reporting.tables
 
 def _held(*args, **kwargs):  # the job's first call after logging its test metrics
     print("[demon_lab] paused at metrics_logged", flush=True)
     time.sleep(3600)
 
-demon_lab.tables.results_table = _held
+demon_lab.reporting.tables.results_table = _held
 """
 """A ``sitecustomize`` module for the job's process: it holds the job between its test metrics and its
 artifacts, where the job builds its results table, without a hook in demon_lab itself."""
@@ -254,8 +254,8 @@ def test_sweep_verdict_does_not_count_failed_attempts_of_jobs_that_finished_sinc
     closing line counts one finished job and no failed one, and names the earlier attempt."""
     from omegaconf import OmegaConf
 
-    from demon_lab.callbacks import MultirunTracking
-    from demon_lab.tracking import TAG, Tracker
+    from demon_lab.app.callbacks import MultirunTracking
+    from demon_lab.pipeline.tracking import TAG, Tracker
 
     tracker = Tracker(f"sqlite:///{tmp_path}/mlflow.db", "default", str(tmp_path / "artifacts"))
     parent = tracker.start("sweep", {f"{TAG}kind": "sweep"})
@@ -339,7 +339,7 @@ def test_the_same_config_and_seed_give_identical_metrics_on_cpu(tmp_path):
 def test_sweep_key_follows_what_the_jobs_compute_and_the_versions(monkeypatch):
 
     from demon_lab.data import synthetic
-    from demon_lab.identity import sweep_key
+    from demon_lab.pipeline.identity import sweep_key
 
     def key(*overrides: str) -> str:
         return sweep_key("study", list(overrides))

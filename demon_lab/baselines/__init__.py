@@ -1,7 +1,7 @@
 """Classical baselines scored with DeMoN's protocol (``method=base_*`` in ``python -m demon_lab``).
 
 :func:`evaluate_baseline` runs one method over a test set and returns per-sample rows like
-``demon_lab.evaluate.evaluate_dataset`` (``it = "baseline"``); a sample the method cannot handle
+``demon_lab.pipeline.evaluate.evaluate_dataset`` (``it = "baseline"``); a sample the method cannot handle
 (too few matches, no parallax) becomes a row with ``failed`` set to the reason, counted in the
 summary as ``n_failed`` and excluded from the means.
 """
@@ -13,7 +13,6 @@ from typing import Any
 import numpy as np
 import torch
 
-from demon_lab import metrics
 from demon_lab.baselines.methods import (
     METHODS,
     BaselineConfig,
@@ -24,6 +23,7 @@ from demon_lab.baselines.methods import (
     base_sift,
 )
 from demon_lab.baselines.twoview import BaselineFailure
+from demon_lab.core import metrics
 
 __all__ = ["METHODS", "BaselineConfig", "BaselineFailure", "evaluate_baseline", "summarize_baseline"]
 
@@ -36,7 +36,7 @@ def evaluate_baseline(method: str, dataset, cfg: BaselineConfig, chain=None, ite
     """Per-sample metric rows of ``method`` on ``dataset`` and the first ``keep`` predictions.
 
     ``inputs``: the same pairs at the resolution the method reads them at (default ``dataset``;
-    ``demon_lab.evaluate.baseline_inputs``); every prediction is scored on ``dataset``'s ground truth.
+    ``demon_lab.pipeline.evaluate.baseline_inputs``); every prediction is scored on ``dataset``'s ground truth.
     ``chain`` (a trained DeMoN) is needed by ``base_mat_f``, which reads its flow on ``dataset``'s
     pairs. ``histogram`` collects per-pixel depth errors.
     """

@@ -2,7 +2,7 @@
 
 Each method maps one sample (an image pair with intrinsics, as ``demon_lab.data`` produces it) to
 ``{"inv_depth": (h, w), "motion": (6,)}`` (inverse depth for a unit-length translation) and is
-scored by ``demon_lab.metrics.evaluate_sample`` exactly like the networks:
+scored by ``demon_lab.core.metrics.evaluate_sample`` exactly like the networks:
 
 * ``base_ff`` — dense DIS flow (OpenCV; the stand-in for FlowFields), forward-backward filtering,
   normalised 8-point in RANSAC, pose from the essential matrix, depth by triangulating the flow;
@@ -14,7 +14,7 @@ scored by ``demon_lab.metrics.evaluate_sample`` exactly like the networks:
 * ``base_oracle`` — ground-truth motion and plane-sweep stereo.
 
 Each view's own intrinsics are used: view-2 points are brought to view 1's camera before the
-geometry, which takes one. ``demon_lab.evaluate`` gives the methods each pair at ``baseline.size``
+geometry, which takes one. ``demon_lab.pipeline.evaluate`` gives the methods each pair at ``baseline.size``
 (by default the source's own resolution, whatever the network reads: the paper's baselines ran at
 640x480 where DeMoN read 256x192).
 """
@@ -30,7 +30,6 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from demon_lab import geometry as geo
 from demon_lab.baselines.twoview import (
     BaselineFailure,
     dense_flow,
@@ -45,6 +44,7 @@ from demon_lab.baselines.twoview import (
     to_gray_u8,
     view1_pixels,
 )
+from demon_lab.core import geometry as geo
 
 METHODS = ("base_ff", "base_sift", "base_5pt", "base_mat_f", "base_oracle")
 
@@ -70,7 +70,7 @@ class BaselineConfig:
     sweep_hypotheses: int = 160
     sweep_window: int = 7
     sweep_max_disparity: float = 0.6
-    size: Any = "native"  # the resolution the pairs are read at: demon_lab.evaluate reads them
+    size: Any = "native"  # the resolution the pairs are read at: demon_lab.pipeline.evaluate reads them
     seed: int = 0
 
 

@@ -1,7 +1,7 @@
 """Two-view geometry for the classical baselines: dense flow, forward-backward filtering, the
 normalised 8-point algorithm inside RANSAC, pose from the essential matrix, dense depth.
 
-Conventions follow demon_lab.geometry: motion ``[r, t]`` with ``X2 = R X1 + t``; intrinsics are
+Conventions follow demon_lab.core.geometry: motion ``[r, t]`` with ``X2 = R X1 + t``; intrinsics are
 normalised ``(fx, fy, cx, cy)`` with pixel centres at ``(x + 0.5) / W``. OpenCV works in pixel
 indices, so :func:`pixel_intrinsics` shifts the principal point by half a pixel. The geometry takes
 one camera matrix, view 1's: view-2 points are first mapped to view 1's camera
@@ -17,7 +17,7 @@ import cv2
 import numpy as np
 import torch
 
-from demon_lab import geometry as geo
+from demon_lab.core import geometry as geo
 
 REFERENCE_WIDTH = 256
 

@@ -34,8 +34,8 @@ DEFAULT_CACHE = Path(os.environ.get("DEMON_LAB_CACHE", Path.home() / ".cache" / 
 
 
 TRAINING_KEYS = ("id", "image1", "image2", "inv_depth", "motion", "intrinsics", "intrinsics2", "baseline")
-"""The fields of a training draw: what the training stages (demon_lab.stages) and their loss targets
-(demon_lab.losses.GroundTruth) read."""
+"""The fields of a training draw: what the training stages (demon_lab.pipeline.stages) and their loss targets
+(demon_lab.core.losses.GroundTruth) read."""
 
 
 class PairDataset(torch.utils.data.Dataset):
@@ -69,7 +69,7 @@ class PairDataset(torch.utils.data.Dataset):
                 ``gt_flow``, ``gt_intrinsics`` of each sample, resampled from the native sample as
                 the inputs are); None: the inputs' own. DeMoN's evaluation scores at 480x640.
             depthmask, eigen_crop, depthmask_intrinsics: the evaluation protocol of this set
-                (:func:`demon_lab.metrics.evaluate_sample`): DeMoN's ``depthmask`` rule; Eigen's NYU
+                (:func:`demon_lab.core.metrics.evaluate_sample`): DeMoN's ``depthmask`` rule; Eigen's NYU
                 crop of 480x640 ground truth (needs ``gt_size=[480, 640]``); the intrinsics the
                 depthmask rule projects with (None: each sample's own).
         """

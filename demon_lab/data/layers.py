@@ -10,7 +10,7 @@ own flow net never sees such data.
 
 A pair has no depth and no camera motion, only flow: its samples carry ``flow`` (2, H, W), normalised
 as everywhere in demon_lab (x by the width, y by the height), and the flow stages' loss reads it
-(:class:`demon_lab.losses.GroundTruth`). The textures are those of the synthetic scenes
+(:class:`demon_lab.core.losses.GroundTruth`). The textures are those of the synthetic scenes
 (:func:`demon_lab.data.textures.texture_bank`: scikit-image's photographs and procedural patterns).
 
 A pair is a pure function of ``(seed, size)``: the layer set and the affine maps come from numpy's
@@ -26,8 +26,8 @@ import math
 import numpy as np
 import torch
 
+from demon_lab.core.geometry import DEMON_INTRINSICS
 from demon_lab.data.textures import texture_bank
-from demon_lab.geometry import DEMON_INTRINSICS
 
 MAX_LAYERS = 4
 """Foreground shapes per pair: 1 to MAX_LAYERS, over the background."""

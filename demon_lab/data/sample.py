@@ -1,7 +1,7 @@
 """``Sample``: one two-view training/evaluation example, the same for every data source.
 
 A sample is a plain ``dict`` (so PyTorch's default collate batches it) with these keys; maps are
-float32 torch tensors unless stated, conventions as in :mod:`demon_lab.geometry`:
+float32 torch tensors unless stated, conventions as in :mod:`demon_lab.core.geometry`:
 
 =============== ================ ==============================================================
 key             shape / type     meaning
@@ -42,7 +42,7 @@ import cv2
 import numpy as np
 import torch
 
-from demon_lab import geometry as geo
+from demon_lab.core import geometry as geo
 
 Sample = dict[str, Any]
 MAP_KEYS = ("image1", "image2", "inv_depth", "inv_depth2", "flow", "normals", "valid", "visible")
@@ -209,7 +209,7 @@ def resample(
 
     Without ``intrinsics`` this is a plain resize (area averaging for images, nearest neighbour
     for depth and masks): normalised intrinsics do not change. With ``intrinsics`` (normalised,
-    e.g. :data:`demon_lab.geometry.DEMON_INTRINSICS`) each view is resampled through the exact
+    e.g. :data:`demon_lab.core.geometry.DEMON_INTRINSICS`) each view is resampled through the exact
     affine map between its own pinhole camera and the target one (a crop plus a scale), so the
     result is the image that camera would have seen; pixels with no source become mid grey
     (images) and invalid (depth). Flow and normals are recomputed from depth and motion
@@ -331,7 +331,7 @@ def augment(sample: Sample, rng: np.random.Generator, normals: bool = True) -> S
 
     ``normals=False`` returns the sample without its ``normals`` map instead of recomputing it from
     the augmented depth: the training losses derive their normals from the depth pyramid
-    (:class:`demon_lab.losses.GroundTruth`), and recomputing a map nobody reads was a tenth of a
+    (:class:`demon_lab.core.losses.GroundTruth`), and recomputing a map nobody reads was a tenth of a
     flow1 step at the cpu scale (py-spy)."""
     rotate, flip = rng.random() < 0.5, rng.random() < 0.5
     if rotate:

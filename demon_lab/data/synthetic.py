@@ -33,7 +33,7 @@ from typing import Any
 
 import numpy as np
 
-from demon_lab import geometry as geo
+from demon_lab.core import geometry as geo
 from demon_lab.data.sample import make_sample
 from demon_lab.data.textures import mip_bank, sample_filtered, texture_bank
 

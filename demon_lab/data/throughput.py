@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from demon_lab import geometry as geo
+from demon_lab.core import geometry as geo
 
 
 def write_demon_layout_file(path: Path, scenes: int, size: tuple[int, int] = (192, 256), seed: int = 0) -> None:

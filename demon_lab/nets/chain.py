@@ -22,8 +22,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from demon_lab import geometry as geo
-from demon_lab.execution import float32
+from demon_lab.core import geometry as geo
+from demon_lab.core.execution import float32
 from demon_lab.nets.blocks import check_correlation, check_size, check_variant
 from demon_lab.nets.depth_motion_net import DepthMotion, DepthMotionNet
 from demon_lab.nets.flow_net import FlowNet

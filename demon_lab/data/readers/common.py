@@ -8,7 +8,7 @@ import cv2
 import numpy as np
 import torch
 
-from demon_lab import geometry as geo
+from demon_lab.core import geometry as geo
 from demon_lab.data.sample import DataError
 
 

@@ -20,7 +20,7 @@ import cv2
 import numpy as np
 import torch
 
-from demon_lab import geometry as geo
+from demon_lab.core import geometry as geo
 from demon_lab.data.readers.common import inverse, read_rgb, relative_motion
 from demon_lab.data.sample import DataError, Sample, make_sample
 

@@ -1,8 +1,8 @@
 """Tables: the terminal tables of the main command's results, the diagnosis and the data
-statistics, and the cells of a study's result tables (:func:`demon_lab.report.build`) with the
+statistics, and the cells of a study's result tables (:func:`demon_lab.reporting.report.build`) with the
 paper's values beside them, which the report's tables and figures read.
 
-Column names come from :data:`demon_lab.metrics.COLUMNS` (their ``text`` form).
+Column names come from :data:`demon_lab.core.metrics.COLUMNS` (their ``text`` form).
 """
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ import math
 from collections.abc import Iterable, Mapping, Sequence
 from typing import Any, NamedTuple
 
-from demon_lab.metrics import RESULT_COLUMNS, column
+from demon_lab.core.metrics import RESULT_COLUMNS, column
 
 
 def text_table(header: Sequence[str], rows: Iterable[Sequence[str]], left: int = 2) -> str:

@@ -7,7 +7,7 @@ them:
 - run key (:func:`run_key`): a job's resolved configuration without the keys that do not change
   what it computes (:data:`NON_SEMANTIC`); a FINISHED run with the same key is skipped.
 - stage key (:func:`stage_key`): what determines one training stage's weights (its description,
-  chained through the keys of its upstream stages: ``demon_lab.stages.schedule.describe_stage``).
+  chained through the keys of its upstream stages: ``demon_lab.pipeline.stages.schedule.describe_stage``).
 - sweep key (:func:`sweep_key`): a multirun's experiment and its result-changing overrides; the
   same sweep re-issued continues its MLflow parent run.
 
@@ -28,7 +28,7 @@ from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Any
 
-from demon_lab.execution import normalize_precision
+from demon_lab.core.execution import normalize_precision
 
 CODE_VERSION = 2
 """Bump when the training code changes what a stage produces."""

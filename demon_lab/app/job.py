@@ -18,9 +18,9 @@ from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 
-from demon_lab.config import ConfigError
-from demon_lab.metrics import UNITS_NOTE
-from demon_lab.validate import CHAIN_METHODS, validate
+from demon_lab.core.metrics import UNITS_NOTE
+from demon_lab.pipeline.config import ConfigError
+from demon_lab.pipeline.validate import CHAIN_METHODS, validate
 
 log = logging.getLogger(__name__)
 
@@ -31,7 +31,7 @@ def job_tags(cfg: DictConfig, key: str) -> dict[str, str]:
 
     import torch
 
-    from demon_lab.tracking import TAG, git_state, version_tags
+    from demon_lab.pipeline.tracking import TAG, git_state, version_tags
 
     return {
         f"{TAG}run_key": key, f"{TAG}experiment": cfg.experiment, f"{TAG}row": str(cfg.row),
@@ -46,24 +46,24 @@ def job_tags(cfg: DictConfig, key: str) -> dict[str, str]:
 
 def run(cfg: DictConfig) -> dict[str, Any]:
     """One job. Returns {'status': 'finished'|'skipped'|'worker', 'run_id': ..., 'summary': ...}."""
-    from demon_lab.config import drop_missing_sources
+    from demon_lab.pipeline.config import drop_missing_sources
 
     for note in drop_missing_sources(cfg):
         log.info("%s", note)
     validate(cfg)
     if cfg.get("threads") is not None:
-        from demon_lab.execution import set_threads
+        from demon_lab.core.execution import set_threads
 
         set_threads(int(cfg.threads))
     if cfg.method == "demon":
-        from demon_lab.execution import global_rank, world_size
-        from demon_lab.stages.training import prepare_chain
+        from demon_lab.core.execution import global_rank, world_size
+        from demon_lab.pipeline.stages.training import prepare_chain
 
         if world_size(cfg) > 1 and global_rank(cfg) != 0:  # a DDP worker: trains; rank 0 tracks and evaluates
             prepare_chain(cfg, None, progress=False)
             return {"status": "worker"}
-    from demon_lab.identity import run_key
-    from demon_lab.tracking import Tracker, flatten
+    from demon_lab.pipeline.identity import run_key
+    from demon_lab.pipeline.tracking import Tracker, flatten
 
     key = run_key(cfg)
     tracker = Tracker(cfg.tracking.uri, cfg.experiment, cfg.tracking.artifact_dir)
@@ -97,10 +97,10 @@ def run(cfg: DictConfig) -> dict[str, Any]:
 
 
 def _train_and_evaluate(cfg: DictConfig, tracker, run_id: str) -> dict[str, Any]:
-    from demon_lab.evaluate import evaluate_test_sets
-    from demon_lab.stages.training import prepare_chain
-    from demon_lab.tables import results_table
-    from demon_lab.visualize import save_visuals
+    from demon_lab.pipeline.evaluate import evaluate_test_sets
+    from demon_lab.pipeline.stages.training import prepare_chain
+    from demon_lab.reporting.tables import results_table
+    from demon_lab.reporting.visualize import save_visuals
 
     stage_runs: list[str] = []
 
@@ -112,7 +112,7 @@ def _train_and_evaluate(cfg: DictConfig, tracker, run_id: str) -> dict[str, Any]
             return None
         from lightning.pytorch.loggers import MLFlowLogger
 
-        from demon_lab.tracking import TAG
+        from demon_lab.pipeline.tracking import TAG
 
         child = tracker.find_interrupted(stage.key, parent_id=run_id, tag="stage_key")
         if child is None:
@@ -121,7 +121,7 @@ def _train_and_evaluate(cfg: DictConfig, tracker, run_id: str) -> dict[str, Any]
         stage_runs.append(child)
         return MLFlowLogger(tracking_uri=tracker.uri, run_id=child)
 
-    from demon_lab.tracking import process_tracking_uri
+    from demon_lab.pipeline.tracking import process_tracking_uri
 
     needs_chain = cfg.method in CHAIN_METHODS
     try:
@@ -141,7 +141,7 @@ def _train_and_evaluate(cfg: DictConfig, tracker, run_id: str) -> dict[str, Any]
 
     refined = cfg.method == "demon" and (not cfg.train or "refine" in [s.name for s in stages])
     if refined and not cfg.train and cfg.model.get("weights"):  # the refinement net only if the file has it
-        from demon_lab.weights import read_nets
+        from demon_lab.pipeline.weights import read_nets
 
         refined = "refine_net" in read_nets(cfg.model.weights, mmap=True)
     results = evaluate_test_sets(cfg, chain, refined)
@@ -207,7 +207,7 @@ def _parent_run() -> str | None:
     """The multirun's parent run id (created once per sweep by the Hydra callback), if any."""
     import os
 
-    from demon_lab.callbacks import PARENT_ENV
+    from demon_lab.app.callbacks import PARENT_ENV
 
     return os.environ.get(PARENT_ENV) or None
 
@@ -216,9 +216,9 @@ def known_errors() -> tuple[type[BaseException], ...]:
     """Errors that are the user's to fix (a config, data, store or checkpoint problem, a diverged
     stage): one line, no traceback."""
     from demon_lab.data.sample import DataError
-    from demon_lab.stages.cache import CheckpointError
-    from demon_lab.stages.training import TrainingDiverged
-    from demon_lab.tracking import TrackingError
+    from demon_lab.pipeline.stages.cache import CheckpointError
+    from demon_lab.pipeline.stages.training import TrainingDiverged
+    from demon_lab.pipeline.tracking import TrackingError
 
     return ConfigError, DataError, TrackingError, CheckpointError, TrainingDiverged
 
@@ -229,7 +229,7 @@ def main_task(cfg: DictConfig) -> None:
     else. In a multirun a failing job never stops the sweep: its run is
     FAILED with the error recorded, it prints one line, leaves ``error.txt`` (with the traceback)
     in its output folder, and the sweep goes on; the sweep's end lists the failures and exits
-    non-zero (:class:`demon_lab.callbacks.MultirunTracking`)."""
+    non-zero (:class:`demon_lab.app.callbacks.MultirunTracking`)."""
     import traceback
 
     job_dir = _hydra_output_dir(multirun_only=True)
@@ -238,10 +238,10 @@ def main_task(cfg: DictConfig) -> None:
         marker.unlink(missing_ok=True)
     server = None
     try:
-        from demon_lab.execution import global_rank
+        from demon_lab.core.execution import global_rank
 
         if cfg.tracking.get("server") and global_rank(cfg) == 0:  # DDP workers only train
-            from demon_lab.tracking import LocalServer
+            from demon_lab.pipeline.tracking import LocalServer
 
             server = LocalServer(cfg.tracking.server)
             server.start()

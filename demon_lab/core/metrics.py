@@ -19,7 +19,7 @@ from typing import Any, ClassVar
 import numpy as np
 import torch
 
-from demon_lab import geometry
+from demon_lab.core import geometry
 
 DEPTH_KEYS = ("l1", "l1_inv", "sc_inv", "l1_rel", "sq_rel", "log10", "rmse", "rmse_log",
               "delta_1.25", "delta_1.25^2", "delta_1.25^3", "n_valid")
@@ -432,7 +432,7 @@ COLUMNS: dict[str, Column] = {c.key: c for c in (
     Column("tran_deg", "tran", "tran (°)", "tran", "tran", "translation direction error, degrees"),
     Column("epe", "EPE", "EPE", "EPE", "EPE", "normalised flow units"),
     Column("n_failed", "failed", "failed", "failed"),
-    # what python -m demon_lab.diagnose measures per pass (demon_lab/diagnose.py)
+    # what python -m demon_lab.diagnose measures per pass (demon_lab/tools/diagnose.py)
     Column("flow", "flow", "flow length", "flow length"),
     Column("gt_flow", "gt flow", "GT flow length", "GT flow length"),
     Column("prior", "prior", "prior flow length", "prior flow length"),

@@ -1,6 +1,6 @@
 """Configuration checks before any work: a wrong type or an out-of-range value, or a file the job
 would read that is not there, is one line naming the key and what is allowed (raised as
-:class:`demon_lab.config.ConfigError`).
+:class:`demon_lab.pipeline.config.ConfigError`).
 
 Written out rather than as Hydra structured configs: those check a value's type, but not its range
 (a positive step count, an odd window), rules across keys (``iterations > 0`` needs the iterative
@@ -16,10 +16,10 @@ from typing import Any
 from omegaconf import DictConfig, OmegaConf
 
 from demon_lab.baselines.methods import METHODS as BASELINES
-from demon_lab.config import ConfigError
-from demon_lab.losses import check_weights
+from demon_lab.core.losses import check_weights
 from demon_lab.nets.chain import ORACLES
-from demon_lab.stages.schedule import LR_SCHEDULES, STAGE_KIND_NAMES
+from demon_lab.pipeline.config import ConfigError
+from demon_lab.pipeline.stages.schedule import LR_SCHEDULES, STAGE_KIND_NAMES
 
 STAGE_ORACLES = {"flow": (None, "depth_motion"), "depth_motion": (None, "flow"), "iterative": (None,),
                  "refine": (None,)}
@@ -67,7 +67,7 @@ def _trains(cfg: DictConfig) -> bool:
     """Whether the job will train a stage (and so read its training data)."""
     if not (cfg.train and cfg.method in CHAIN_METHODS):
         return False
-    from demon_lab.stages.schedule import stage_dirs
+    from demon_lab.pipeline.stages.schedule import stage_dirs
 
     return not all(stage.done() for stage in stage_dirs(cfg))
 
@@ -93,7 +93,7 @@ def _model_files(cfg: DictConfig) -> None:
     if cfg.model.get("compat") == "demon_original" and cfg.model.variant != "v1":
         raise ConfigError("model.compat: demon_original reproduces DeMoN's released v1 graph; it needs "
                           f"model.variant=v1, got {cfg.model.variant}")
-    from demon_lab.stages.schedule import correlation_of
+    from demon_lab.pipeline.stages.schedule import correlation_of
 
     if cfg.model.get("correlation") is not None:
         from demon_lab.nets.blocks import check_correlation
@@ -106,7 +106,7 @@ def _model_files(cfg: DictConfig) -> None:
             raise ConfigError("model.correlation: compat=demon_original reproduces DeMoN's released graph, which has "
                               "no correlation front; leave model.correlation null")
     from demon_lab.nets.prior import MOTION_PRIORS, PREVIOUS_MOTION_PRIORS, PRIORS
-    from demon_lab.stages.schedule import PRIOR_KEYS, priors_of
+    from demon_lab.pipeline.stages.schedule import PRIOR_KEYS, priors_of
 
     _choice("model.flow1_prior", cfg.model.get("flow1_prior"), PRIORS)
     _choice("model.dm1_prior", cfg.model.get("dm1_prior"), MOTION_PRIORS)
@@ -122,14 +122,14 @@ def _model_files(cfg: DictConfig) -> None:
         raise ConfigError(f"model.weights: method={cfg.method} runs no DeMoN chain; leave model.weights unset")
     if not Path(str(weights)).is_file():
         raise ConfigError(f"model.weights: {weights}: no such file")
-    from demon_lab.weights import check_fits
+    from demon_lab.pipeline.weights import check_fits
 
     why = check_fits(weights, cfg.model.variant, float(cfg.model.width), tuple(cfg.data.size),
                      correlation_of(cfg.model), **priors_of(cfg.model))
     if why:
         raise ConfigError(f"model.weights: {why}")
     if not cfg.train:  # evaluated as they are: the passes run must not fall back on untrained nets
-        from demon_lab.weights import read_nets
+        from demon_lab.pipeline.weights import read_nets
 
         needed = ["flow1", "dm1"] + (["flow2", "dm2"] if int(cfg.iterations) > 0 else [])
         lacking = [n for n in needed if n not in read_nets(weights, mmap=True)]
@@ -148,8 +148,8 @@ def _flow1_only(name: str, spec: DictConfig, option: str, what: str) -> None:
 def _kept_nets(cfg: DictConfig, stage: str, before: list[str]) -> None:
     """A stage of 0 steps trains nothing: its nets stay as they are at that point of the schedule,
     so each must come from an earlier stage that trains it or from ``model.weights``."""
-    from demon_lab.stages.schedule import TRAINED_NETS
-    from demon_lab.weights import read_nets
+    from demon_lab.pipeline.stages.schedule import TRAINED_NETS
+    from demon_lab.pipeline.weights import read_nets
 
     earlier = {n for s in before if cfg.schedule.stages[s].steps > 0 for n in TRAINED_NETS[s]}
     held = set(read_nets(cfg.model.weights, mmap=True)) if cfg.model.get("weights") else set()
@@ -190,7 +190,7 @@ def _execution(cfg: DictConfig, here: bool = True) -> None:
     """``precision``, ``model.channels_last`` and ``model.compile``: known values, and, when the job
     runs ``here``, ones this platform can run on the device the job trains on (one line where it
     cannot; a job a cluster launcher sends elsewhere is checked there, by the job itself)."""
-    from demon_lab import execution
+    from demon_lab.core import execution
 
     try:
         execution.normalize_precision(cfg.get("precision", 32))

@@ -29,7 +29,7 @@ from collections.abc import Sequence
 import torch
 import torch.nn.functional as F
 
-from demon_lab.execution import float32
+from demon_lab.core.execution import float32
 
 DEMON_INTRINSICS = (0.89115971, 1.18821287, 0.5, 0.5)
 """DeMoN's fixed normalised intrinsics (SUN3D: f = 570.342 px at 640x480)."""

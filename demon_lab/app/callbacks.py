@@ -7,7 +7,7 @@ run whose id the jobs find in ``DEMON_LAB_PARENT_RUN`` (they tag themselves with
 cluster pre-emption) continues the same parent run, so its children are every job of the sweep:
 the finished ones (skipped this time) and the ones run now.
 
-A failing job never stops the sweep (``demon_lab.job.main_task``); ``on_multirun_end`` attaches
+A failing job never stops the sweep (``demon_lab.app.job.main_task``); ``on_multirun_end`` attaches
 the study's report (its tables and figures, from every FINISHED run in the store: ``report/`` in
 the parent run's artifacts, so the dashboard shows it), lists the jobs that failed this time, marks
 the parent FINISHED or FAILED and exits non-zero if any failed.
@@ -42,11 +42,11 @@ class MultirunTracking(Callback):
         return {**self.__dict__, "tracker": None, "server": None}
 
     def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
-        from demon_lab.tracking import TAG, Tracker
+        from demon_lab.pipeline.tracking import TAG, Tracker
 
         self.started = time.time() - 1.0
         if config.tracking.get("server"):
-            from demon_lab.tracking import LocalServer, TrackingError
+            from demon_lab.pipeline.tracking import LocalServer, TrackingError
 
             self.server = LocalServer(config.tracking.server)
             try:
@@ -58,7 +58,7 @@ class MultirunTracking(Callback):
             self.tracker = Tracker(config.tracking.uri, config.experiment, config.tracking.artifact_dir)
         except Exception:  # a bad store is reported by each job with one line
             return
-        from demon_lab.identity import sweep_key
+        from demon_lab.pipeline.identity import sweep_key
 
         key = sweep_key(config.experiment, config.hydra.overrides.task)
         overrides = " ".join(config.hydra.overrides.task)
@@ -73,7 +73,7 @@ class MultirunTracking(Callback):
         os.environ[PARENT_ENV] = self.parent
 
     def on_multirun_end(self, config: DictConfig, **kwargs: Any) -> None:
-        from demon_lab.tracking import TAG
+        from demon_lab.pipeline.tracking import TAG
 
         sweep_dir = Path(config.hydra.sweep.dir)
         failed = sorted(p.parent for p in sweep_dir.rglob("error.txt") if p.stat().st_mtime >= self.started)
@@ -103,7 +103,7 @@ class MultirunTracking(Callback):
         """The study's report (``python -m demon_lab.report NAME``, from every FINISHED run in the
         store) as artifacts of the parent run; a sweep of an experiment without a study spec has
         none. A report that cannot be built is a warning: the sweep's own result stands."""
-        from demon_lab import report
+        from demon_lab.reporting import report
 
         study = None
         try:

@@ -15,7 +15,7 @@ from typing import Any
 
 import torch
 
-from demon_lab.identity import content_hash, describe
+from demon_lab.pipeline.identity import content_hash, describe
 
 __all__ = ["NETS", "CheckpointError", "check_fits", "content_hash", "describe", "load_checkpoint", "load_weights",
            "misfit", "read_nets"]

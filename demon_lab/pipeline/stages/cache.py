@@ -1,7 +1,7 @@
 """The stage cache (docs/running.md, "The stage cache").
 
 Every stage's result is stored under a key hashing everything that determines it
-(:func:`demon_lab.identity.stage_key` of ``demon_lab.stages.schedule.describe_stage``: the stage's
+(:func:`demon_lab.pipeline.identity.stage_key` of ``demon_lab.pipeline.stages.schedule.describe_stage``: the stage's
 own config, the model and loss config, the training data config, the seed, the upstream stages'
 keys and the code's and the scene generator's versions). A finished stage is reused instead of
 retrained (so an iteration sweep trains once and evaluates N times), an interrupted one resumes
@@ -24,7 +24,7 @@ from typing import Any
 import torch
 from filelock import FileLock
 
-from demon_lab.weights import CheckpointError, load_checkpoint
+from demon_lab.pipeline.weights import CheckpointError, load_checkpoint
 
 __all__ = ["CheckpointError", "StageDir", "atomic_checkpoint_io", "atomic_torch_save", "load_checkpoint"]
 

@@ -21,9 +21,9 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from demon_lab.metrics import column
-from demon_lab.tables import cell, has_values, paper_cells
-from demon_lab.visualize import safe_name
+from demon_lab.core.metrics import column
+from demon_lab.reporting.tables import cell, has_values, paper_cells
+from demon_lab.reporting.visualize import safe_name
 
 FIGURE_KINDS = ("iterations", "pixel_errors", "motion", "qualitative", "time_to_accuracy")
 """Every figure of a study is ``<study>_<kind>[_...].png`` in the report's figures folder."""
@@ -219,7 +219,7 @@ def flow1_stage_run(client, run: Mapping[str, Any]):
     """The MLflow run of the stage that trained a job run's ``flow1``: its own child run, or, where the
     job found the stage in the cache, the stage run of the same key (the job that trained it); None if
     the store has neither."""
-    from demon_lab.tracking import TAG
+    from demon_lab.pipeline.tracking import TAG
 
     children = client.search_runs([run["experiment_id"]], filter_string=(
         f"tags.`mlflow.parentRunId` = '{run['run_id']}' and tags.`{TAG}stage` = 'flow1'"))

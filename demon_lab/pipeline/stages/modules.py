@@ -11,13 +11,13 @@ from collections.abc import Mapping
 
 import torch
 
-from demon_lab import losses
+from demon_lab.core import losses
 from demon_lab.nets.chain import (
     Prediction,
     flow_net_inputs,
     ground_truth_inputs,
 )
-from demon_lab.stages.base import StageModule
+from demon_lab.pipeline.stages.base import StageModule
 
 
 class FlowStage(StageModule):

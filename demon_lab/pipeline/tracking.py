@@ -1,7 +1,7 @@
 """MLflow tracking (the contract: docs/running.md, "Tracking").
 
 One job = one MLflow run in the experiment named after the study (``experiment``), tagged with
-its run key (:func:`demon_lab.identity.run_key`), seed, scale, git commit, versions and
+its run key (:func:`demon_lab.pipeline.identity.run_key`), seed, scale, git commit, versions and
 device; params are the flattened config and the resolved config is an artifact. Stage trainings
 are child runs with their loss curves (Lightning's ``MLFlowLogger`` on the child run). Final
 metrics are ``test/<set>/<metric>``, ``test/<set>/it<k>/<metric>`` and
@@ -53,9 +53,9 @@ def _quiet_mlflow() -> None:
 
 def version_tags() -> dict[str, str]:
     """``demon_lab.code_version`` and ``demon_lab.generator_version`` of this code: the versions
-    every run key includes (:func:`demon_lab.identity.versions`), as tags, so a report can tell
+    every run key includes (:func:`demon_lab.pipeline.identity.versions`), as tags, so a report can tell
     runs of older code or scenes apart."""
-    from demon_lab.identity import versions
+    from demon_lab.pipeline.identity import versions
 
     return {f"{TAG}{k}": str(v) for k, v in versions().items()}
 
@@ -158,7 +158,7 @@ class Tracker:
                 and run.data.tags.get(f"{TAG}run_key") == key)
 
     def find_sweep(self, key: str) -> str | None:
-        """The newest parent run of the sweep with this key (:func:`demon_lab.identity.sweep_key`)."""
+        """The newest parent run of the sweep with this key (:func:`demon_lab.pipeline.identity.sweep_key`)."""
         query = f"tags.`{TAG}sweep_key` = '{key}'"
         runs = self.client.search_runs([self.experiment_id], filter_string=query, max_results=1,
                                        order_by=["attributes.start_time DESC"])

@@ -1,6 +1,6 @@
 """Pictures of evaluated samples, saved as run artifacts: titled panels and coloured point clouds.
 
-Each kept sample (``demon_lab.evaluate``) becomes one PNG of six panels: image 1, the ground-truth
+Each kept sample (``demon_lab.pipeline.evaluate``) becomes one PNG of six panels: image 1, the ground-truth
 inverse depth, the prediction (both for a unit-length translation, as the network predicts and
 the metrics score it; one colour scale with its bar), the absolute inverse-depth error (the
 per-pixel L1-inv), the flow (hue: direction, brightness: length) and the normals. Point clouds are
@@ -100,7 +100,7 @@ def point_cloud(sample: Mapping[str, Any], out: Path) -> Path:
     baseline), coloured by image 1; pixels without positive finite inverse depth are left out."""
     import cv2
 
-    from demon_lab import geometry as geo
+    from demon_lab.core import geometry as geo
 
     inv = sample["inv_depth"][None, None].double()
     h, w = inv.shape[2:]

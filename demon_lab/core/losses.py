@@ -17,8 +17,8 @@ from collections.abc import Mapping
 
 import torch
 
-from demon_lab import geometry as geo
-from demon_lab.execution import float32
+from demon_lab.core import geometry as geo
+from demon_lab.core.execution import float32
 
 EPS = 1e-5
 WEIGHT_KEYS = ("flow", "flow_conf", "flow_sig", "flow_conf_sig", "depth", "depth_sig", "normals",

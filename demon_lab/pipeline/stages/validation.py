@@ -23,7 +23,7 @@ from collections.abc import Sequence
 import lightning as L
 import torch
 
-from demon_lab import execution, losses, metrics
+from demon_lab.core import execution, losses, metrics
 from demon_lab.nets.chain import downsample_image
 
 MOTION_STAGES = ("dm1", "dm2", "iterative")

@@ -1,6 +1,6 @@
 """Train the schedule's stages that the stage cache lacks, in order, and load them all.
 
-Used by the job (:mod:`demon_lab.job`), which tracks every trained stage as a child run of its
+Used by the job (:mod:`demon_lab.app.job`), which tracks every trained stage as a child run of its
 MLflow run with the stage's loss curves. Also where a job's processes are counted: with
 ``trainer.devices x trainer.num_nodes > 1`` each stage trains with DDP, the global batch split
 over the processes.
@@ -18,7 +18,7 @@ from pathlib import Path
 import lightning as L
 from omegaconf import DictConfig, OmegaConf
 
-from demon_lab.execution import (
+from demon_lab.core.execution import (
     global_rank,
     normalize_precision,
     plain_state,
@@ -26,9 +26,9 @@ from demon_lab.execution import (
     world_size,
 )
 from demon_lab.nets.chain import DeMoN
-from demon_lab.stages.cache import StageDir, atomic_checkpoint_io, load_checkpoint
-from demon_lab.stages.modules import STAGE_KINDS
-from demon_lab.stages.schedule import TRAINED_NETS, build_chain, load_stage, stage_dirs
+from demon_lab.pipeline.stages.cache import StageDir, atomic_checkpoint_io, load_checkpoint
+from demon_lab.pipeline.stages.modules import STAGE_KINDS
+from demon_lab.pipeline.stages.schedule import TRAINED_NETS, build_chain, load_stage, stage_dirs
 
 log = logging.getLogger(__name__)
 
@@ -44,8 +44,8 @@ def build_datamodule(cfg: DictConfig, batch_size: int, samples: int, skip: int =
     process loads its share of every batch); ``easy_first``, ``layers_first``: a stage's curriculum
     (MixtureSampler: the easiest samples first; fresh 2-D layers for the first part of the stage);
     ``pin_memory``: batches in page-locked memory (faster copies to a CUDA device)."""
-    from demon_lab.config import instantiate
     from demon_lab.data.datamodule import DemonDataModule
+    from demon_lab.pipeline.config import instantiate
 
     train = [{"weight": e.weight, "dataset": instantiate(e.dataset)} for e in cfg.data.train]
     world = world_size(cfg)
@@ -99,8 +99,8 @@ def train_stage(cfg: DictConfig, chain: DeMoN, stage: StageDir, logger: L.pytorc
         every_n_train_steps=max(1, int(cfg.scale.get("checkpoint_every", 50))), auto_insert_metric_name=False)
     callbacks: list = [checkpoint]
     if logger is not None and cfg.data.get("val") and global_rank(cfg) == 0:
-        from demon_lab.config import instantiate
-        from demon_lab.stages.validation import StageValidation
+        from demon_lab.pipeline.config import instantiate
+        from demon_lab.pipeline.stages.validation import StageValidation
 
         passes = int(spec.iterations) if kind == "refine" else int(stage.name in ("flow2", "dm2", "iterative"))
         callbacks.append(StageValidation(stage.name, [instantiate(e) for e in cfg.data.val],
@@ -151,9 +151,9 @@ def screen_restarts(cfg: DictConfig, chain: DeMoN, stage: StageDir, module: L.Li
     (``restart/val_epe`` at step ``i``, ``restart/chosen``)."""
     import torch
 
-    from demon_lab.config import instantiate
     from demon_lab.nets.blocks import initialise
-    from demon_lab.stages.validation import StageValidation
+    from demon_lab.pipeline.config import instantiate
+    from demon_lab.pipeline.stages.validation import StageValidation
 
     spec = cfg.schedule.stages[stage.name]
     starts, steps = int(spec.restarts[0]), int(spec.restarts[1])
@@ -228,8 +228,8 @@ def prepare_chain(cfg: DictConfig, on_stage: Callable[[StageDir, str], L.pytorch
             log.info("train=false: evaluating the untrained chain")
         return chain.eval(), [], figures
     if not all(stage.done() for stage in stage_dirs(cfg)):
-        from demon_lab.config import instantiate
         from demon_lab.data.datasets import warm_cache
+        from demon_lab.pipeline.config import instantiate
 
         start = time.perf_counter()
         rendered = warm_cache([instantiate(e.dataset) for e in cfg.data.train])

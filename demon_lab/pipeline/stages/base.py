@@ -16,9 +16,9 @@ from collections.abc import Mapping, Sequence
 import lightning as L
 import torch
 
-from demon_lab import execution, losses
+from demon_lab.core import execution, losses
 from demon_lab.nets.chain import DeMoN, downsample_image
-from demon_lab.stages.schedule import LR_SCHEDULES
+from demon_lab.pipeline.stages.schedule import LR_SCHEDULES
 
 MULTISTEP_MILESTONES = (0.4, 0.6, 0.8)
 FINAL_LR = 1e-6
@@ -42,13 +42,13 @@ class StageModule(L.LightningModule):
     Args:
         chain: the DeMoN chain (upstream nets already trained and loaded).
         trained: names of the chain's nets this stage trains.
-        weights: a loss preset (:func:`demon_lab.losses.check_weights`).
+        weights: a loss preset (:func:`demon_lab.core.losses.check_weights`).
         steps, lr, lr_schedule, weight_decay: the optimisation of the stage.
         warmup_steps: linear learning-rate warm-up (0: none, as DeMoN).
         oracle: ground-truth inputs during training ('flow' for depth-motion stages,
             'depth_motion' for flow stages of the iterative net), or None.
         channels_last: the batch's images in channels-last layout (the chain's nets already are:
-            :func:`demon_lab.execution.prepare_nets`).
+            :func:`demon_lab.core.execution.prepare_nets`).
     """
 
     def __init__(self, chain: DeMoN, trained: Sequence[str], weights: Mapping[str, float], steps: int,

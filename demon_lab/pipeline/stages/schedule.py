@@ -13,18 +13,18 @@ from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 
-from demon_lab import losses
-from demon_lab.execution import normalize_precision, prepare_nets
-from demon_lab.identity import model_identity, stage_key
+from demon_lab.core import losses
+from demon_lab.core.execution import normalize_precision, prepare_nets
 from demon_lab.nets.chain import DeMoN
-from demon_lab.stages.cache import CheckpointError, StageDir
+from demon_lab.pipeline.identity import model_identity, stage_key
+from demon_lab.pipeline.stages.cache import CheckpointError, StageDir
 
 STAGE_KIND_NAMES = ("flow", "depth_motion", "iterative", "refine")
 """The kinds of training stage (``schedule.stages.NAME.kind``): the keys of
-:data:`demon_lab.stages.modules.STAGE_KINDS`, named here so that checking a config needs no Lightning."""
+:data:`demon_lab.pipeline.stages.modules.STAGE_KINDS`, named here so that checking a config needs no Lightning."""
 
 LR_SCHEDULES = ("released", "supplementary")
-"""``schedule.lr_schedule``: :func:`demon_lab.stages.base.learning_rate` implements both."""
+"""``schedule.lr_schedule``: :func:`demon_lab.pipeline.stages.base.learning_rate` implements both."""
 
 TRAINED_NETS = {"flow1": ["flow1"], "dm1": ["dm1"], "flow2": ["flow2"], "dm2": ["dm2"],
                 "iterative": ["flow2", "dm2"], "refine": ["refine_net"]}
@@ -89,12 +89,12 @@ def stage_dirs(cfg: DictConfig) -> list[StageDir]:
 
 def build_chain(cfg: DictConfig) -> DeMoN:
     """The chain of the config's variant, width, input size and compat mode: untrained, or with
-    ``model.weights`` loaded (:func:`demon_lab.weights.load_weights`); its nets in channels-last
+    ``model.weights`` loaded (:func:`demon_lab.pipeline.weights.load_weights`); its nets in channels-last
     layout and compiled when ``model.channels_last`` / ``model.compile`` ask for it."""
     chain = DeMoN(cfg.model.variant, float(cfg.model.width), tuple(cfg.data.size), cfg.model.get("compat"),
                   correlation_of(cfg.model), **priors_of(cfg.model))
     if cfg.model.get("weights"):
-        from demon_lab.weights import load_weights
+        from demon_lab.pipeline.weights import load_weights
 
         load_weights(chain, cfg.model.weights)
     return prepare_nets(chain, bool(cfg.model.get("channels_last", False)), bool(cfg.model.get("compile", False)))

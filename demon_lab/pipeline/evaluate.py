@@ -21,7 +21,7 @@ from typing import Any
 import torch
 from torch.utils.data import DataLoader
 
-from demon_lab import execution, metrics
+from demon_lab.core import execution, metrics
 from demon_lab.nets.chain import DeMoN
 
 log = logging.getLogger(__name__)
@@ -37,7 +37,7 @@ def evaluate_dataset(chain: DeMoN, dataset, iterations: int, oracle: str | None 
     raw predictions of the first ``keep`` samples (for visualisations). ``refined=False`` (the
     refinement net was not trained) leaves out the refined rows. ``histogram`` collects the
     per-pixel errors of the final depth (refined, else the last pass). The chain runs on the device
-    of its parameters, its nets in ``precision`` (:mod:`demon_lab.execution`; the predictions it
+    of its parameters, its nets in ``precision`` (:mod:`demon_lab.core.execution`; the predictions it
     returns, and so the metrics, are float32), the images channels-last if ``channels_last``."""
     n = len(dataset) if max_samples is None else min(len(dataset), int(max_samples))
     subset = torch.utils.data.Subset(dataset, range(n))
@@ -108,7 +108,7 @@ def evaluate_test_sets(cfg, chain: DeMoN | None, refined: bool) -> list[TestSetR
     ``chain``: the trained chain (``method=demon``; ``base_mat_f`` reads its flow), None for the
     other baselines; ``refined``: whether the refinement net is trained (its rows are scored)."""
     from demon_lab.baselines import summarize_baseline
-    from demon_lab.config import instantiate
+    from demon_lab.pipeline.config import instantiate
 
     keep = max(int(cfg.eval.visualize), int(cfg.eval.point_clouds))
     if cfg.method == "demon" and chain is not None:  # on the device it trained on (Lightning hands it back on the CPU)
@@ -149,7 +149,7 @@ def _evaluate_baseline(cfg, entry, dataset, chain: DeMoN | None, keep: int, hist
 def baseline_inputs(entry, dataset, size):
     """The test set ``entry`` (instantiated as ``dataset``) at the baselines' resolution ``size``:
     ``"native"`` (``dataset.native_size``) or (H, W); ``dataset`` itself when that is its size."""
-    from demon_lab.config import instantiate
+    from demon_lab.pipeline.config import instantiate
 
     target = dataset.native_size if size == "native" else (int(size[0]), int(size[1]))
     if target == dataset.size:
