@@ -190,7 +190,9 @@ def _fmt_rate(r: dict[str, float], unit: str = "steps/s") -> str:
 
 
 def part_tests(check: Check) -> None:
-    root = Path(__file__).resolve().parents[1]
+    from demon_lab.resources import PACKAGE
+
+    root = PACKAGE.resolve().parent  # the checkout, when demon_lab runs from one
     files = ["tests/test_devices.py"] + ([] if check.dry_run else ["tests/test_geometry.py"])
     marker = "not cuda" if check.dry_run else "cuda"
     if not (root / files[0]).is_file():
