@@ -27,7 +27,7 @@ from demon_lab.core.execution import float32
 from demon_lab.nets.blocks import check_correlation, check_size, check_variant
 from demon_lab.nets.depth_motion_net import DepthMotion, DepthMotionNet
 from demon_lab.nets.flow_net import FlowNet
-from demon_lab.nets.prior import check_motion_prior, check_previous_motion_prior, check_prior, ransac_motion
+from demon_lab.nets.prior import check_prior, ransac_motion
 from demon_lab.nets.refine_net import RefineNet
 
 ORACLES = (None, "flow", "depth_motion")
@@ -173,10 +173,10 @@ class DeMoN(nn.Module):
         kw = dict(variant=variant, width=width, size=self.size)
         self.flow1_prior = check_prior(flow1_prior)
         self.flow1 = FlowNet(iterative=False, correlation=self.correlation, prior=self.flow1_prior, **kw)
-        self.dm1_prior = check_motion_prior(dm1_prior)
+        self.dm1_prior = check_prior(dm1_prior, "dm1_prior")
         self.dm1 = DepthMotionNet(iterative=self.dm1_prior is not None, **kw)  # + the depth from the prior
         self.flow2 = FlowNet(iterative=True, correlation=self.correlation, **kw)
-        self.dm2_prior = check_previous_motion_prior(dm2_prior)
+        self.dm2_prior = check_prior(dm2_prior, "dm2_prior")
         self.dm2 = DepthMotionNet(iterative=True, **kw)
         for net, prior in ((self.dm1, self.dm1_prior), (self.dm2, self.dm2_prior)):
             if prior:  # the correction of the prior motion starts at none

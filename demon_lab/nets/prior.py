@@ -53,21 +53,14 @@ DIS_SETTINGS = ("medium", 0, 25)
 """DIS preset, finest scale and gradient-descent iterations: Base-FF's defaults (``conf/baseline``)."""
 
 
-def check_prior(prior: str | None) -> str | None:
-    if prior not in PRIORS:
-        raise ValueError(f"flow1_prior: expected one of {PRIORS}, got {prior!r}")
-    return prior
+CHOICES = {"flow1_prior": PRIORS, "dm1_prior": MOTION_PRIORS, "dm2_prior": PREVIOUS_MOTION_PRIORS}
+"""The choices of each prior option of the chain."""
 
 
-def check_motion_prior(prior: str | None) -> str | None:
-    if prior not in MOTION_PRIORS:
-        raise ValueError(f"dm1_prior: expected one of {MOTION_PRIORS}, got {prior!r}")
-    return prior
-
-
-def check_previous_motion_prior(prior: str | None) -> str | None:
-    if prior not in PREVIOUS_MOTION_PRIORS:
-        raise ValueError(f"dm2_prior: expected one of {PREVIOUS_MOTION_PRIORS}, got {prior!r}")
+def check_prior(prior: str | None, option: str = "flow1_prior") -> str | None:
+    """``prior`` if it is one of ``option``'s choices (:data:`CHOICES`); else a ValueError."""
+    if prior not in CHOICES[option]:
+        raise ValueError(f"{option}: expected one of {CHOICES[option]}, got {prior!r}")
     return prior
 
 

@@ -105,12 +105,11 @@ def _model_files(cfg: DictConfig) -> None:
         if cfg.model.get("compat") == "demon_original":
             raise ConfigError("model.correlation: compat=demon_original reproduces DeMoN's released graph, which has "
                               "no correlation front; leave model.correlation null")
-    from demon_lab.nets.prior import MOTION_PRIORS, PREVIOUS_MOTION_PRIORS, PRIORS
+    from demon_lab.nets.prior import CHOICES
     from demon_lab.pipeline.stages.schedule import PRIOR_KEYS, priors_of
 
-    _choice("model.flow1_prior", cfg.model.get("flow1_prior"), PRIORS)
-    _choice("model.dm1_prior", cfg.model.get("dm1_prior"), MOTION_PRIORS)
-    _choice("model.dm2_prior", cfg.model.get("dm2_prior"), PREVIOUS_MOTION_PRIORS)
+    for key in PRIOR_KEYS:
+        _choice(f"model.{key}", cfg.model.get(key), CHOICES[key])
     for key in PRIOR_KEYS:
         if cfg.model.get(key) is not None and cfg.model.get("compat") == "demon_original":
             raise ConfigError(f"model.{key}: compat=demon_original reproduces DeMoN's released graph, whose "
