@@ -117,6 +117,7 @@ def sun3d_like(sun3d_test_pairs):
     return Subset(low, keep), Subset(high, keep)
 
 
+@pytest.mark.slow
 def test_plane_sweep_with_true_motion_finds_the_depth_of_a_rendered_scene(sun3d_like):
     low, high = sun3d_like
     rows, _ = evaluate_baseline("base_oracle", low, BaselineConfig(), inputs=high)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import re
 
+import pytest
 import torch
 
 from demon_lab.core import geometry as geo
@@ -32,6 +33,7 @@ def test_geometry_benchmark_reports_every_op_with_numbers(tmp_path):
     assert re.search(r"angle_axis_to_matrix \(B=8\) .*x cv2\.Rodrigues", text)
 
 
+@pytest.mark.slow
 def test_job_rates_reads_each_stage_rate_from_the_job_it_runs():
     command = ("python", "-m", "demon_lab", "scale=smoke", "schedule.until=dm1", "iterations=0",
                "scale.steps.flow1=12", "scale.steps.dm1=6")

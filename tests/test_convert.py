@@ -15,13 +15,23 @@ import numpy as np
 import pytest
 import torch
 
-tf = pytest.importorskip("tensorflow", reason="needs TensorFlow to write checkpoints and run its ops "
-                                              "(pip install tensorflow-cpu; CI installs it)")
+from demon_lab.nets import DeMoN
+from demon_lab.nets.blocks import Conv, ConvPair, UpConv
+from demon_lab.tools import convert
+from demon_lab.tools.tf_checkpoint import CheckpointFormatError, CheckpointReader
 
-from demon_lab.nets import DeMoN  # noqa: E402
-from demon_lab.nets.blocks import Conv, ConvPair, UpConv  # noqa: E402
-from demon_lab.tools import convert  # noqa: E402
-from demon_lab.tools.tf_checkpoint import CheckpointFormatError, CheckpointReader  # noqa: E402
+pytestmark = pytest.mark.slow  # TensorFlow's import and graphs: the slow tier
+
+tf = None
+"""TensorFlow, imported when the first test of this module runs (collecting the fast tier imports nothing)."""
+
+
+@pytest.fixture(scope="module", autouse=True)
+def tensorflow():
+    global tf
+    tf = pytest.importorskip("tensorflow", reason="needs TensorFlow to write checkpoints and run its ops "
+                                                  "(pip install tensorflow-cpu; CI installs it)")
+    return tf
 
 HERE = Path(__file__).resolve().parent
 VARIABLES = HERE / "data" / "demon_v1_variables.txt"

@@ -64,6 +64,7 @@ def _png_rows(path) -> tuple[int, int, list[bytes]]:
     return width, height, rows
 
 
+@pytest.mark.slow
 def test_the_dashboard_shows_the_runs_of_a_sweep(tmp_path, browser):
     result = cli("-m", *smoke_overrides(tmp_path), "seed=0,1", "schedule.until=flow1", "iterations=0",
                  "eval.max_samples=1", cwd=tmp_path)

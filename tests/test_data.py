@@ -273,6 +273,7 @@ def test_synthetic_samples_are_deterministic_and_splits_disjoint():
     assert test.seed_of(0) == SPLIT_SEEDS["test"]
 
 
+@pytest.mark.slow
 def test_synthetic_bytes_are_the_same_in_a_fresh_process():
     code = ("import hashlib; from demon_lab.data import synthetic as s;"
             "x = s.render_pair('synthetic_mvs', 3, (24, 32));"
@@ -347,6 +348,7 @@ def test_brightness_constancy_holds_on_rendered_pairs(preset):
     assert float(np.mean(errors)) * 255 < 4.0
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("preset", sorted(TABLE1))
 def test_presets_hit_table1_means_within_15_percent(preset):
     from demon_lab.tools.data_stats import dataset_statistics
@@ -360,6 +362,7 @@ def test_presets_hit_table1_means_within_15_percent(preset):
     assert stats["visible_fraction"] >= 0.5 * stats["valid_fraction"]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("preset", sorted(TABLE1))
 @pytest.mark.parametrize("split", ["train", "test"])
 def test_camera_2_moves_either_way_sideways(preset, split):
@@ -647,6 +650,7 @@ def _run_stats(*args):
                           capture_output=True, text=True)
 
 
+@pytest.mark.slow
 def test_data_stats_command_writes_json(tmp_path):
     import json
 
@@ -720,6 +724,7 @@ def test_synthetic_pairs_have_no_points_near_camera_2():
     assert not any(near(preset, s) for s in (10, 79, 82, 83, 118))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("args, message", [
     (["data=pair_folder", "data.path=/does/not/exist"], "/does/not/exist: no such file or directory"),
     (["data=demon_h5"], "Missing mandatory value"),

@@ -28,6 +28,7 @@ def _rows(text: str) -> list[list[str]]:
             if re.match(r"^\| [1-7] ", line)]
 
 
+@pytest.mark.slow
 def test_the_dry_run_exercises_every_part_and_writes_one_table(tmp_path):
     out = tmp_path / "device_check.md"
     proc = _script("--dry-run", "--out", str(out))

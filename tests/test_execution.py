@@ -208,6 +208,7 @@ def _job(tmp, *extra):
         torch.set_num_threads(threads)
 
 
+@pytest.mark.slow
 def test_bf16_mixed_with_channels_last_runs_the_smoke_pipeline_into_mlflow_within_tolerance(tmp_path):
     """The same smoke job (flow1 and dm1, the bootstrap pass evaluated) in float32 and in bf16-mixed
     with channels-last, from the same seed. Tolerances: the first step's loss (same weights, same
@@ -249,6 +250,7 @@ def test_bf16_mixed_with_channels_last_runs_the_smoke_pipeline_into_mlflow_withi
         assert math.isfinite(got["tran_deg"]) and math.isfinite(got["sc_inv"]), name
 
 
+@pytest.mark.slow
 def test_compile_trains_a_smoke_stage_or_is_refused_in_one_line(tmp_path):
     from demon_lab.pipeline.stages.training import prepare_chain
 

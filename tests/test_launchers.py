@@ -19,7 +19,8 @@ LAUNCHERS = {
 SWEEPS = [[f"+experiment={e}"] for e in SWEPT] + [["iterations=0,1,2,3,4,5"]]
 
 
-@pytest.mark.parametrize("launcher", list(LAUNCHERS))
+@pytest.mark.parametrize("launcher", [name if name == "basic" else pytest.param(name, marks=pytest.mark.slow)
+                                      for name in LAUNCHERS])
 @pytest.mark.parametrize("sweep", SWEEPS, ids=lambda s: s[0])
 def test_every_job_of_every_documented_sweep_composes_with_every_launcher(launcher, sweep):
     with initialize_config_dir(CONF, version_base="1.3"):

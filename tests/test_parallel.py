@@ -8,6 +8,8 @@ import subprocess
 import sys
 import time
 
+import pytest
+
 from tests.conftest import free_port
 from tests.test_pipeline import cli, client, smoke_overrides
 
@@ -26,6 +28,7 @@ tracker.finish(run)
 """
 
 
+@pytest.mark.slow
 def test_parallel_writers_on_a_fresh_sqlite_store_lose_nothing(tmp_path):
     """N processes open a store that does not exist yet at the same moment and log M metrics each
     through demon_lab's tracking layer: N x M values are stored, no process fails."""
@@ -47,6 +50,7 @@ def test_parallel_writers_on_a_fresh_sqlite_store_lose_nothing(tmp_path):
     assert all(v == w * m + s for (w, s), v in stored.items())
 
 
+@pytest.mark.slow
 def test_joblib_sweep_on_the_default_sqlite_store(tmp_path):
     """Three jobs, three at a time, on a store created by the sweep: every run FINISHED with all
     its metrics, one parent run holding them."""
@@ -73,6 +77,7 @@ def _listening(port: int) -> bool:
         return s.connect_ex(("127.0.0.1", port)) == 0
 
 
+@pytest.mark.slow
 def test_local_server_serves_the_command_on_loopback_and_stops(tmp_path):
     port = free_port()
     args = [*smoke_overrides(tmp_path), "tracking=local_server", f"tracking.server.port={port}",
@@ -89,6 +94,7 @@ def test_local_server_serves_the_command_on_loopback_and_stops(tmp_path):
     assert any(a.path == "config.yaml" for a in c.list_artifacts(job[0].info.run_id))
 
 
+@pytest.mark.slow
 def test_an_unreachable_tracking_server_fails_before_any_work(tmp_path):
     port = free_port()  # nothing listens there
     result = cli(*smoke_overrides(tmp_path), f"tracking.uri=http://127.0.0.1:{port}", "schedule.until=flow1",
@@ -112,6 +118,7 @@ def test_launcher_workers_get_no_store_client():
 
 
 
+@pytest.mark.slow
 def test_two_process_ddp_on_the_cpu_trains_like_one_process(tmp_path):
     """``trainer.devices=2`` on the CPU (gloo): Lightning starts the second process by re-running
     the command; rank 1 only trains, rank 0 tracks, saves and evaluates. Each process takes half of

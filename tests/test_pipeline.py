@@ -216,6 +216,7 @@ def test_diagnosis_reads_the_cached_chain_and_needs_it(smoke_run, tmp_path, caps
     assert "bogus" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_a_job_that_raises_leaves_its_run_failed(tmp_path):
     from demon_lab.app.job import run
     from demon_lab.data.sample import DataError
@@ -331,7 +332,8 @@ jobs, the commands of their study specs in ablations/, which tests/test_report.p
 
 
 @pytest.mark.parametrize("experiment", SWEPT)
-@pytest.mark.parametrize("scale", ["smoke", "cpu", "paper"])
+@pytest.mark.parametrize("scale", ["smoke", pytest.param("cpu", marks=pytest.mark.slow),
+                                   pytest.param("paper", marks=pytest.mark.slow)])
 def test_every_experiment_sweep_composes_and_validates(experiment, scale):
     """Each job of an experiment's declared sweep (hydra.sweeper.params) composes and validates."""
     from demon_lab.__main__ import _job_overrides
@@ -343,6 +345,7 @@ def test_every_experiment_sweep_composes_and_validates(experiment, scale):
     assert check(args) is None
 
 
+@pytest.mark.slow
 def test_checking_a_configuration_imports_neither_lightning_nor_mlflow():
     """``python -m demon_lab``'s check of every experiment (what runs before any work) in a fresh
     process: composing and validating a config needs neither the training nor the tracking library."""
@@ -644,6 +647,7 @@ def test_times_resolver_takes_integers_only():
         _ = OmegaConf.create({"n": "3; rm -rf", "m": "${times:${n},4}"}).m
 
 
+@pytest.mark.slow
 def test_killed_training_stage_resumes_from_its_checkpoint(tmp_path):
     """A real job is killed (SIGKILL) mid-stage; the same command resumes from the stage's last
     checkpoint instead of starting over."""
@@ -685,6 +689,7 @@ def test_killed_training_stage_resumes_from_its_checkpoint(tmp_path):
     assert "FINISHED" in statuses
 
 
+@pytest.mark.slow
 def test_multirun_has_one_parent_run_and_trains_once(tmp_path):
     result = cli("-m", *smoke_overrides(tmp_path), "iterations=0,2", cwd=tmp_path)
     assert result.returncode == 0, result.stderr[-2000:]

@@ -180,6 +180,7 @@ def test_stage_files_and_partial_state_dicts_load_net_by_net(tmp_path):
         load_weights(chain, tmp_path / "bad.pt")
 
 
+@pytest.mark.slow
 def test_the_iteration_sweep_of_given_weights_trains_nothing(tmp_path):
     weights = _smoke_weights(tmp_path / "chain.pt", seed=3)
     result = cli("-m", *smoke_overrides(tmp_path, "iterations=0,1", f"model.weights={weights}", "train=false"),
@@ -242,6 +243,7 @@ def test_demon_test_files_are_prepared_with_demons_protocol(tmp_path):
     assert torch.isnan(poseless["motion"]).all() and torch.isnan(poseless["gt_flow"]).all()
 
 
+@pytest.mark.slow
 def test_the_released_model_study_runs_and_reports_beside_the_paper(tmp_path):
     """``report released_model --run --override ...``: the experiment's two jobs (3 and 5
     iterations, nothing trained) on DeMoN's test files, then the report with the paper's DeMoN rows
@@ -274,6 +276,7 @@ def test_the_released_model_study_runs_and_reports_beside_the_paper(tmp_path):
         "error: released_model runs on files you supply: pass --override data.root=DIR --override model.weights=FILE")
 
 
+@pytest.mark.slow
 def test_fine_tuning_starts_from_the_weights_and_a_zero_step_stage_keeps_them(tmp_path):
     """Table 2's oracle study started from given weights: flow1 kept as it is (0 steps), dm1
     trained with ground-truth flow from the weights' dm1 (not from a fresh initialisation)."""

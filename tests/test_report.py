@@ -64,6 +64,7 @@ def test_paper_numbers_merge_the_rows_of_one_cell():
     assert it3 == {"epe": 0.019}
 
 
+@pytest.mark.slow
 def test_every_shipped_spec_loads_and_names_known_paper_rows():
     from demon_lab.__main__ import check
 
@@ -226,6 +227,7 @@ def test_publish_logs_the_report_on_a_run_and_leaves_reports_alone(tmp_path, mon
     assert md == direct and "| row a | 3 | 2.000 ± 2.484 | 20.000 ± 24.841 |" in md
 
 
+@pytest.mark.slow
 def test_report_from_real_smoke_runs(tmp_path):
     """A real smoke sweep of the flow-oracle experiment, then the Table 2 report from its runs."""
     overrides = ["scale=smoke", f"cache_dir={tmp_path}/cache", "seed=0"]

@@ -28,6 +28,7 @@ while True:
 """
 
 
+@pytest.mark.slow
 def test_a_kill_during_a_save_never_leaves_a_torn_checkpoint(tmp_path):
     """A real process saving 16 MB checkpoints in a loop is SIGKILLed at 8 moments; each time the
     file on disk loads and is one complete save."""
@@ -60,6 +61,7 @@ def _stage_weights(tmp: Path, *extra: str) -> list[Path]:
     return [d.weights for d in stage_dirs(compose_config(smoke_overrides(tmp, *extra)))]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("damage", ["truncated", "other_architecture"])
 def test_a_bad_cached_stage_fails_the_job_in_one_line(tmp_path, damage):
     first = cli(*smoke_overrides(tmp_path, "schedule.until=dm1", "iterations=0"), cwd=tmp_path)
@@ -156,6 +158,7 @@ def uninterrupted(tmp_path_factory):
     return get
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("point", list(KILL_POINTS))
 def test_a_killed_job_resumes_into_its_run_with_the_uninterrupted_result(tmp_path, point, uninterrupted):
     """SIGKILL at a point of the job (a stage's training, evaluation, the final logging), the same
@@ -207,6 +210,7 @@ def _jobs_and_parents(tmp: Path):
             [r for r in runs if r.data.tags.get("demon_lab.kind") == "sweep"])
 
 
+@pytest.mark.slow
 def test_a_failing_job_does_not_stop_the_sweep(tmp_path):
     """A job whose loss turns NaN (learning rate 1e30): one line naming the stage, step and terms,
     its run FAILED with the error and traceback, the other job still runs; the sweep exits
@@ -230,6 +234,7 @@ def test_a_failing_job_does_not_stop_the_sweep(tmp_path):
     assert all(r.data.tags["mlflow.parentRunId"] == parent.info.run_id for r in jobs)
 
 
+@pytest.mark.slow
 def test_a_killed_sweep_reissued_completes_only_the_missing_jobs(tmp_path):
     """SIGKILL a three-job sweep after its first job finished, issue it again: the finished job is
     skipped, the interrupted one resumes into its run, the third runs; three job runs in all, all
@@ -292,6 +297,7 @@ def _pair_folder(tmp: Path, damage: str) -> Path:
     return folder
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("damage, message", [
     ("missing", "no such file or directory"),
     ("corrupt_image", "not a readable image"),
@@ -324,6 +330,7 @@ def test_bad_input_is_one_line_and_leaves_no_running_run(tmp_path, damage, messa
         assert all(r.info.status != "RUNNING" for r in runs)
 
 
+@pytest.mark.slow
 def test_the_same_config_and_seed_give_identical_metrics_on_cpu(tmp_path):
     """Two independent runs (own caches and stores) of the same job: every final metric equal."""
     extra = ["schedule.until=dm1", "iterations=0", "eval.max_samples=2"]
@@ -351,6 +358,7 @@ def test_sweep_key_follows_what_the_jobs_compute_and_the_versions(monkeypatch):
     assert key("seed=0,1", "+experiment=study") != base  # new scenes: a new parent run
 
 
+@pytest.mark.slow
 def test_a_stage_that_diverges_fails_its_own_run_not_the_finished_stages_before_it(tmp_path):
     """flow1 trains and is cached, dm1's loss turns NaN: the job and dm1's stage run are FAILED with
     the error, flow1's stage run stays FINISHED (Lightning's logger ended it so)."""
