@@ -617,3 +617,27 @@ def test_the_iterative_depth_motion_net_with_a_motion_prior_starts_at_the_previo
     assert torch.allclose(p2.motion[:, 3:] - p0.motion[:, 3:], torch.full((1, 3), 0.1), atol=1e-6)
     with pytest.raises(ValueError, match="dm2_prior: expected one of"):
         DeMoN("v1", 0.25, (64, 64), dm2_prior="ransac")
+
+
+def test_the_iterative_flow_net_with_a_flow_prior_starts_at_the_previous_flow():
+    torch.manual_seed(0)
+    chain = DeMoN("v1", 0.25, (96, 128), flow2_prior="previous")
+    pair = _textured_pair((6, -4))
+    image2_2 = torch.nn.functional.avg_pool2d(pair[:, 3:], 4)
+    K = torch.tensor([[0.89, 1.19, 0.5, 0.5]])
+    with torch.no_grad():
+        p0 = chain.bootstrap(pair, image2_2, K)
+        p0 = replace(p0, flow=torch.randn_like(p0.flow) * 0.05, flow5=torch.randn_like(p0.flow5) * 0.05)
+        p1 = chain.iterate(pair, image2_2, K, p0)
+        assert torch.allclose(p1.flow, p0.flow) and torch.allclose(p1.flow5, p0.flow5)  # no correction yet
+        assert p1.conf.abs().sum() > 0  # the confidence is the net's own, not zeroed
+        plain = DeMoN("v1", 0.25, (96, 128))
+        plain.load_state_dict(chain.state_dict())  # the same nets: only the flow's meaning differs
+        assert not torch.allclose(plain.iterate(pair, image2_2, K, p0).flow, p0.flow, atol=1e-4)
+        chain.flow2.predict_flow2.out.conv.bias[:2] += 0.1  # a correction is added to the previous flow
+        p2 = chain.iterate(pair, image2_2, K, p0)
+    assert torch.allclose(p2.flow - p0.flow, torch.full_like(p0.flow, 0.1), atol=1e-6)
+    with pytest.raises(ValueError, match="flow2_prior: expected one of"):
+        DeMoN("v1", 0.25, (64, 64), flow2_prior="dis")
+    with pytest.raises(ValueError, match="whose nets have no priors"):
+        DeMoN("v1", 0.25, (64, 64), compat="demon_original", flow2_prior="previous")

@@ -270,6 +270,9 @@ def test_a_job_that_raises_leaves_its_run_failed(tmp_path):
     (["model.flow1_prior=flownet"], "model.flow1_prior: expected one of null, dis, got 'flownet'"),
     (["model.dm1_prior=lmeds"], "model.dm1_prior: expected one of null, ransac, got 'lmeds'"),
     (["model.dm2_prior=ransac"], "model.dm2_prior: expected one of null, previous, got 'ransac'"),
+    (["model.flow2_prior=dis"], "model.flow2_prior: expected one of null, previous, got 'dis'"),
+    (["model.flow2_prior=previous", "model.compat=demon_original"],
+     "model.flow2_prior: compat=demon_original reproduces DeMoN's released graph, whose nets have no priors"),
     (["model.dm2_prior=previous", "model.compat=demon_original"],
      "model.dm2_prior: compat=demon_original reproduces DeMoN's released graph, whose nets have no priors"),
     (["model.flow1_prior=dis", "model.compat=demon_original"],
@@ -326,9 +329,10 @@ def test_documented_configurations_compose_and_validate(overrides):
 EXPERIMENTS = sorted(p.stem for p in (resources.CONF / "experiment").glob("*.yaml") if p.stem != "released_model")
 """The experiments that run on demon_lab's own data (released_model needs DeMoN's files and weights:
 tests/test_released.py)."""
-SWEPT = [e for e in EXPERIMENTS if e not in ("cpu_recipe", "cpu_design", "cpu_motion", "cpu_prior")]
-"""The experiments that declare a sweep (the probes of cpu_recipe, cpu_design, cpu_motion and cpu_prior are single
-jobs, the commands of their study specs in ablations/, which tests/test_report.py composes)."""
+SWEPT = [e for e in EXPERIMENTS if e not in ("cpu_recipe", "cpu_design", "cpu_motion", "cpu_prior", "cpu_departures")]
+"""The experiments that declare a sweep (the probes of cpu_recipe, cpu_design, cpu_motion, cpu_prior and
+cpu_departures are single jobs, the commands of their study specs in ablations/, which tests/test_report.py
+composes)."""
 
 
 @pytest.mark.parametrize("experiment", SWEPT)
@@ -425,7 +429,7 @@ def test_a_flow_net_option_keys_every_stage_and_the_run_and_is_absent_by_default
     from demon_lab.pipeline.stages.schedule import build_chain, stage_dirs
 
     with initialize_config_dir(CONF, version_base="1.3"):
-        plain = compose("config", [f"scale={scale}"])
+        plain = compose("config", [f"scale={scale}", f"model.{key}=null"])  # (the cpu profile sets flow1_prior)
         changed = compose("config", [f"scale={scale}", option])
     assert plain.model[key] is None and key not in semantic_config(plain)["model"]
     assert all(a.key != b.key for a, b in zip(stage_dirs(plain), stage_dirs(changed), strict=True))
@@ -434,7 +438,8 @@ def test_a_flow_net_option_keys_every_stage_and_the_run_and_is_absent_by_default
         assert built(build_chain(changed)) and not built(build_chain(plain))
 
 
-@pytest.mark.parametrize(("option", "first"), [("dm1_prior=ransac", "dm1"), ("dm2_prior=previous", "dm2")])
+@pytest.mark.parametrize(("option", "first"), [("dm1_prior=ransac", "dm1"), ("flow2_prior=previous", "flow2"),
+                                               ("dm2_prior=previous", "dm2")])
 def test_a_motion_prior_keys_the_stages_from_its_net_on_and_shares_those_before(option, first):
     import demon_lab.pipeline.config  # noqa: F401  (registers the resolvers, as the app does)
     from demon_lab.pipeline.identity import run_key
@@ -442,7 +447,7 @@ def test_a_motion_prior_keys_the_stages_from_its_net_on_and_shares_those_before(
 
     key, value = option.split("=")
     with initialize_config_dir(CONF, version_base="1.3"):
-        plain = compose("config", ["scale=cpu"])
+        plain = compose("config", ["scale=cpu", f"model.{key}=null"])
         prior = compose("config", ["scale=cpu", f"model.{option}"])
     assert plain.model[key] is None and run_key(plain) != run_key(prior)
     a, b = stage_dirs(plain), stage_dirs(prior)
@@ -452,6 +457,27 @@ def test_a_motion_prior_keys_the_stages_from_its_net_on_and_shares_those_before(
     assert all(x.key == y.key for x, y in zip(a[:cut], b[:cut], strict=True))
     assert all(x.key != y.key for x, y in zip(a[cut:], b[cut:], strict=True))
     assert getattr(build_chain(prior), key) == value and getattr(build_chain(plain), key) is None
+
+
+def test_only_the_cpu_profile_departs_from_demons_design_and_the_probe_studies_do_not():
+    """The cpu profile takes the four priors; the smoke and paper profiles (and so DeMoN's released
+    design at paper scale) take none; the probe studies that measured DeMoN's design keep it."""
+    from demon_lab.pipeline.stages.schedule import PRIOR_KEYS, build_chain
+
+    profile = {"flow1_prior": "dis", "dm1_prior": "ransac", "flow2_prior": "previous", "dm2_prior": "previous"}
+    assert set(PRIOR_KEYS) == set(profile)
+    with initialize_config_dir(CONF, version_base="1.3"):
+        cpu = compose("config", ["scale=cpu"])
+        others = [compose("config", [f"scale={scale}"]) for scale in ("smoke", "paper")]
+        probes = [compose("config", ["scale=cpu", f"+experiment={name}"])
+                  for name in ("cpu_recipe", "cpu_design", "cpu_motion", "cpu_prior")]
+        departures = compose("config", ["scale=cpu", "+experiment=cpu_departures"])
+    assert {k: cpu.model[k] for k in profile} == profile
+    assert {k: departures.model[k] for k in profile} == profile
+    for cfg in others + probes:
+        assert all(cfg.model[k] is None for k in profile)
+    chain = build_chain(cpu)
+    assert (chain.flow1_prior, chain.dm1_prior, chain.flow2_prior, chain.dm2_prior) == tuple(profile.values())
 
 
 def test_train_stage_hands_the_probe_options_to_their_stages(tmp_path, monkeypatch):

@@ -148,11 +148,14 @@ class DeMoN(nn.Module):
     and the net predicts a correction of that motion, starting at none; or None. ``dm2_prior``:
     ``"previous"`` makes the iterative depth-motion net predict a correction of the previous pass's
     motion (which it reads, as DeMoN's does), starting at none, instead of the motion itself; or
-    None (:mod:`demon_lab.nets.prior`; not DeMoN's design)."""
+    None (:mod:`demon_lab.nets.prior`; not DeMoN's design). ``flow2_prior``: ``"previous"`` makes the
+    iterative flow net predict a correction of the previous pass's flow (at levels 2 and 5), starting
+    at none, instead of the flow itself; or None (not DeMoN's design)."""
 
     def __init__(self, variant: str = "v1", width: float = 1.0, size: tuple[int, int] = (192, 256),
                  compat: str | None = None, correlation: tuple[int, int] | None = None,
-                 flow1_prior: str | None = None, dm1_prior: str | None = None, dm2_prior: str | None = None):
+                 flow1_prior: str | None = None, dm1_prior: str | None = None, flow2_prior: str | None = None,
+                 dm2_prior: str | None = None):
         super().__init__()
         check_variant(variant)
         check_size(*size)
@@ -165,7 +168,7 @@ class DeMoN(nn.Module):
         if compat == "demon_original" and correlation is not None:
             raise ValueError("compat='demon_original' reproduces DeMoN's released graph, which has no "
                              "correlation front")
-        if compat == "demon_original" and (flow1_prior, dm1_prior, dm2_prior) != (None, None, None):
+        if compat == "demon_original" and (flow1_prior, dm1_prior, flow2_prior, dm2_prior) != (None,) * 4:
             raise ValueError("compat='demon_original' reproduces DeMoN's released graph, whose nets "
                              "have no priors")
         self.variant, self.width, self.size, self.compat = variant, width, tuple(size), compat
@@ -175,7 +178,13 @@ class DeMoN(nn.Module):
         self.flow1 = FlowNet(iterative=False, correlation=self.correlation, prior=self.flow1_prior, **kw)
         self.dm1_prior = check_prior(dm1_prior, "dm1_prior")
         self.dm1 = DepthMotionNet(iterative=self.dm1_prior is not None, **kw)  # + the depth from the prior
+        self.flow2_prior = check_prior(flow2_prior, "flow2_prior")
         self.flow2 = FlowNet(iterative=True, correlation=self.correlation, **kw)
+        if self.flow2_prior:  # the correction of the previous flow starts at none
+            with torch.no_grad():
+                for head in (self.flow2.predict_flow5, self.flow2.predict_flow2):
+                    head.out.conv.weight[:2].zero_()
+                    head.out.conv.bias[:2].zero_()
         self.dm2_prior = check_prior(dm2_prior, "dm2_prior")
         self.dm2 = DepthMotionNet(iterative=True, **kw)
         for net, prior in ((self.dm1, self.dm1_prior), (self.dm2, self.dm2_prior)):
@@ -211,13 +220,25 @@ class DeMoN(nn.Module):
         dm = self.dm2(pair, depth_motion_net_inputs(image2_2, flow, conf, prev_motion, intrinsics, self.compat))
         return replace(dm, motion=dm.motion + prev_motion) if self.dm2_prior else dm
 
+    def flow_net2(self, pair: torch.Tensor, image2_2: torch.Tensor, intrinsics: torch.Tensor,
+                  src: Prediction | GroundTruthInputs, prev: Prediction) -> tuple[torch.Tensor, torch.Tensor]:
+        """The iterative flow net on the flow of ``src``'s depth and motion (the previous pass, or
+        ground truth under the depth-motion oracle): ``(flowconf5, flowconf2)`` as :class:`FlowNet`
+        returns them (with ``flow2_prior``: its flows are ``prev``'s corrected). ``intrinsics`` as
+        :func:`net_intrinsics` gives them."""
+        extra = flow_net_inputs(image2_2, src.inv_depth, src.normals, src.motion, intrinsics, self.compat)
+        flowconf5, flowconf2 = self.flow2(pair, extra)
+        if self.flow2_prior:
+            flowconf5 = torch.cat([flowconf5[:, :2] + prev.flow5.detach(), flowconf5[:, 2:]], 1)
+            flowconf2 = torch.cat([flowconf2[:, :2] + prev.flow.detach(), flowconf2[:, 2:]], 1)
+        return flowconf5, flowconf2
+
     def iterate(self, pair: torch.Tensor, image2_2: torch.Tensor, intrinsics: torch.Tensor,
                 prev: Prediction, gt2: GroundTruthInputs | None = None,
                 oracle: str | None = None) -> Prediction:
         src = gt2 if oracle == "depth_motion" else prev
         intrinsics = net_intrinsics(intrinsics, self.compat)
-        extra = flow_net_inputs(image2_2, src.inv_depth, src.normals, src.motion, intrinsics, self.compat)
-        flowconf5, flowconf2 = self.flow2(pair, extra)
+        flowconf5, flowconf2 = self.flow_net2(pair, image2_2, intrinsics, src, prev)
         flow, conf = flowconf2[:, :2], flowconf2[:, 2:]
         dm_flow, dm_conf = (gt2.flow, _oracle_confidence(gt2.flow)) if oracle == "flow" else (flow, conf)
         dm = self.depth_motion2(pair, image2_2, dm_flow, dm_conf, prev.motion, intrinsics)

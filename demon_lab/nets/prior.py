@@ -17,6 +17,11 @@ every training step, and the net predicts a correction of that motion.
 DeMoN's iterative depth-motion net reads the previous pass's motion (through the depth triangulated
 with it) and predicts the motion anew. ``model.dm2_prior=previous`` makes it predict a correction
 of the previous motion instead, starting at none: a pass begins where the last one ended.
+
+DeMoN's iterative flow net reads the flow of the previous depth and motion (and image 2 warped with
+it) and predicts the flow anew. ``model.flow2_prior=previous`` makes it predict a correction of the
+previous pass's flow instead, starting at none, as ``dm2_prior=previous`` does for the motion: the
+geometric flow stays an input, and a pass cannot lose the flow the pass before it found.
 """
 
 from __future__ import annotations
@@ -43,6 +48,8 @@ MOTION_PRIORS = (None, "ransac")
 """``model.dm1_prior``: none, or 5-point RANSAC on the flow."""
 PREVIOUS_MOTION_PRIORS = (None, "previous")
 """``model.dm2_prior``: none, or the previous pass's motion."""
+PREVIOUS_FLOW_PRIORS = (None, "previous")
+"""``model.flow2_prior``: none, or the previous pass's flow."""
 RANSAC_THRESHOLD_PX = 2.0
 """The 5-point RANSAC's inlier threshold in pixels at width 256, scaled to the flow's width."""
 RANSAC_POINTS = 256
@@ -53,7 +60,8 @@ DIS_SETTINGS = ("medium", 0, 25)
 """DIS preset, finest scale and gradient-descent iterations: Base-FF's defaults (``conf/baseline``)."""
 
 
-CHOICES = {"flow1_prior": PRIORS, "dm1_prior": MOTION_PRIORS, "dm2_prior": PREVIOUS_MOTION_PRIORS}
+CHOICES = {"flow1_prior": PRIORS, "dm1_prior": MOTION_PRIORS, "flow2_prior": PREVIOUS_FLOW_PRIORS,
+           "dm2_prior": PREVIOUS_MOTION_PRIORS}
 """The choices of each prior option of the chain."""
 
 

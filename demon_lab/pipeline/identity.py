@@ -82,11 +82,11 @@ def _portable(value: Any) -> Any:
 def model_identity(model: dict[str, Any]) -> dict[str, Any]:
     """A plain ``model`` config with ``weights`` named by the file's content (``sha256:...``), not
     its path: a moved file keeps its keys, a changed one gets new ones. ``compat``, ``weights``,
-    ``correlation`` and the priors (``flow1_prior``, ``dm1_prior``, ``dm2_prior``) at their defaults
+    ``correlation`` and the priors (``flow1_prior``, ``dm1_prior``, ``flow2_prior``, ``dm2_prior``) at their defaults
     (null) are left out, so the
     keys of configs without them are those they had before the keys existed; so are
     :data:`EXECUTION_KEYS`, which never change a key."""
-    optional = ("compat", "weights", "correlation", "flow1_prior", "dm1_prior", "dm2_prior")
+    optional = ("compat", "weights", "correlation", "flow1_prior", "dm1_prior", "flow2_prior", "dm2_prior")
     model = {k: v for k, v in model.items() if not (k in optional and v is None) and k not in EXECUTION_KEYS}
     if not model.get("weights"):
         return model

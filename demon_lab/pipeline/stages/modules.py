@@ -12,11 +12,7 @@ from collections.abc import Mapping
 import torch
 
 from demon_lab.core import losses
-from demon_lab.nets.chain import (
-    Prediction,
-    flow_net_inputs,
-    ground_truth_inputs,
-)
+from demon_lab.nets.chain import Prediction, ground_truth_inputs
 from demon_lab.pipeline.stages.base import StageModule
 
 
@@ -46,10 +42,11 @@ class FlowStage(StageModule):
             flow5, flow2 = self.chain.flow1(pair)
         else:
             with torch.no_grad():
-                src = (ground_truth_inputs(batch, K) if self.oracle == "depth_motion"
-                       else self.chain.bootstrap(pair, image2_2, K))
-                extra = flow_net_inputs(image2_2, src.inv_depth, src.normals, src.motion, K, self.chain.compat)
-            flow5, flow2 = self.chain.flow2(pair, extra)
+                oracle = self.oracle == "depth_motion"
+                prev = (self.chain.bootstrap(pair, image2_2, K)
+                        if not oracle or self.chain.flow2_prior else None)
+                src = ground_truth_inputs(batch, K) if oracle else prev
+            flow5, flow2 = self.chain.flow_net2(pair, image2_2, K, src, prev)
         return losses.flow_loss(flow5, flow2, gt, self.weights, ramp=self.ramp(1 / 3, self.sig_start),
                                  level5=self.level5(self.level5_fade))
 
@@ -78,8 +75,7 @@ class DepthMotionStage(StageModule):
                 flow, conf = _flow_and_conf(self.chain.flow1(pair)[1])
             else:
                 prev = self.chain.bootstrap(pair, image2_2, K)
-                extra = flow_net_inputs(image2_2, prev.inv_depth, prev.normals, prev.motion, K, self.chain.compat)
-                flow, conf = _flow_and_conf(self.chain.flow2(pair, extra)[1])
+                flow, conf = _flow_and_conf(self.chain.flow_net2(pair, image2_2, K, prev, prev)[1])
             if gt2 is not None:
                 flow, conf = gt2.flow, torch.isfinite(gt2.flow).to(gt2.flow.dtype)
         if self.net == "dm1":

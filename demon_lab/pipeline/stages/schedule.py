@@ -63,10 +63,11 @@ def describe_stage(cfg: DictConfig, name: str, upstream: dict[str, str]) -> dict
     }
 
 
-MODEL_OPTION_FROM = {"dm1_prior": "dm1", "dm2_prior": "dm2"}
+MODEL_OPTION_FROM = {"dm1_prior": "dm1", "flow2_prior": "flow2", "dm2_prior": "dm2"}
 """Model options that change only the nets from a stage on: the stages before it leave them out of
-their keys (so flow1 is shared between chains with and without ``dm1_prior``, and flow1, dm1 and
-flow2 between chains with and without ``dm2_prior``)."""
+their keys (so flow1 is shared between chains with and without ``dm1_prior``, flow1 and dm1
+between chains with and without ``flow2_prior``, and flow1, dm1 and flow2 between chains with and
+without ``dm2_prior``)."""
 
 
 def _stage_model(model: dict[str, Any], name: str, names: list[str]) -> dict[str, Any]:
@@ -100,7 +101,7 @@ def build_chain(cfg: DictConfig) -> DeMoN:
     return prepare_nets(chain, bool(cfg.model.get("channels_last", False)), bool(cfg.model.get("compile", False)))
 
 
-PRIOR_KEYS = ("flow1_prior", "dm1_prior", "dm2_prior")
+PRIOR_KEYS = ("flow1_prior", "dm1_prior", "flow2_prior", "dm2_prior")
 """The model options that give a net a prior (:mod:`demon_lab.nets.prior`)."""
 
 
