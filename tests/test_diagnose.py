@@ -10,26 +10,45 @@ from conftest import random_scene
 
 from demon_lab.core import geometry as geo
 from demon_lab.core import losses
-from demon_lab.nets.chain import Prediction
+from demon_lab.nets.chain import ChainOutput, Prediction
+from demon_lab.pipeline.evaluate import run_chain
 from demon_lab.tools.diagnose import diagnose_batch, format_table, summarize
 
 
-class ScriptedChain:
-    """Pass 0: the ground truth itself; every later pass: no flow, no motion and inverse depth -1."""
+class ScriptedChain(torch.nn.Module):
+    """Pass 0: the ground truth itself; every later pass: no flow, no motion and inverse depth -1;
+    refined: inverse depth 1."""
 
     def __init__(self, batch):
+        super().__init__()
         self.gt = losses.ground_truth(batch)
+        self.device_marker = torch.nn.Parameter(torch.zeros(()))  # run_chain's device
 
-    def bootstrap(self, pair, image2_2, K):
+    def forward(self, image1, image2, intrinsics, iterations, oracle=None, gt=None):
+        passes = [self.bootstrap()]
+        for _ in range(iterations):
+            passes.append(self.iterate(passes[-1]))
+        return ChainOutput(passes, self.refine(image1, passes[-1].inv_depth))
+
+    def refine(self, image1, inv_depth2):
+        return torch.ones_like(image1[:, :1])
+
+    def bootstrap(self):
         flow = self.gt["flow2"]
         inv = self.gt["inv_depth2"]
         zeros5 = torch.zeros_like(self.gt["flow5"])
         return Prediction(flow, torch.ones_like(flow), zeros5, zeros5, inv, self.gt["normals2"], self.gt["motion"])
 
-    def iterate(self, pair, image2_2, K, prev):
+    def iterate(self, prev):
         flow = torch.zeros_like(prev.flow)
         return Prediction(flow, prev.conf, prev.flow5, prev.conf5, -torch.ones_like(prev.inv_depth),
                           prev.normals, torch.zeros_like(prev.motion))
+
+
+def diagnose(chain, batch, iterations, refine=False):
+    """The diagnosis of ``chain`` on one batch, run as the command runs it."""
+    ((_, on_device, output),) = run_chain(chain, [batch], iterations)
+    return diagnose_batch(on_device, output, refine=refine)
 
 
 @pytest.fixture
@@ -45,7 +64,7 @@ def test_diagnosis_of_scripted_passes(batch):
     gt = losses.ground_truth(batch)
     gt_len = gt["flow2"].norm(dim=1).flatten(1).mean(1)
     assert (gt["flow2"].norm(dim=1) < 1).all()  # so the prior keeps every vector
-    passes = diagnose_batch(ScriptedChain(batch), batch, iterations=2)
+    passes = diagnose(ScriptedChain(batch), batch, iterations=2)
     assert len(passes) == 3 and all(len(p) == 3 for p in passes)
     for i in range(3):
         p0, p1, p2 = (p[i] for p in passes)
@@ -73,7 +92,7 @@ def test_prior_is_what_the_iterative_flow_net_receives(batch):
     long = induced.norm(dim=1) >= 1
     assert 0.05 < long.float().mean() < 0.95
     kept = torch.where(long[:, None], torch.zeros_like(induced), induced).norm(dim=1).flatten(1).mean(1)
-    p1 = diagnose_batch(chain, batch, iterations=1)[1]
+    p1 = diagnose(chain, batch, iterations=1)[1]
     for i in range(3):
         assert p1[i]["prior"] == pytest.approx(float(kept[i]), rel=1e-5)
 
@@ -82,12 +101,12 @@ def test_refined_row_counts_non_positive_depth(batch):
     chain = ScriptedChain(batch)
     chain.refine = lambda image1, inv: torch.where(torch.arange(image1.shape[-1]) < 24, -1.0, 1.0).expand(
         image1.shape[0], 1, *image1.shape[-2:])
-    rows = diagnose_batch(chain, batch, iterations=1, refine=True)
+    rows = diagnose(chain, batch, iterations=1, refine=True)
     assert len(rows) == 3 and all(r["nonpositive_depth"] == 0.25 and math.isnan(r["epe"]) for r in rows[2])
 
 
 def test_summary_and_table(batch):
-    results = {"scripted": summarize(diagnose_batch(ScriptedChain(batch), batch, iterations=1))}
+    results = {"scripted": summarize(diagnose(ScriptedChain(batch), batch, iterations=1))}
     assert results["scripted"][0]["pairs"] == 3 and math.isnan(results["scripted"][0]["prior"])
     table = format_table(results).splitlines()
     assert table[0].split()[:4] == ["test", "set", "pass", "EPE"] and len(table) == 4

@@ -2,7 +2,9 @@
 chain and the classical baselines.
 
 :func:`evaluate_test_sets` scores every test set of a job's config with the job's method;
-:func:`evaluate_dataset` is the chain on one set, for every iteration and the refined depth.
+:func:`evaluate_dataset` is the chain on one set, for every iteration and the refined depth;
+:func:`run_chain` is the chain over a dataset's batches, the one loop that every evaluation of the
+chain runs through (this module's, the stages' held-apart curves, the diagnosis, the device check).
 
 Per test set, for iteration k = 0 (bootstrap) .. ``iterations``: depth metrics of the level-2
 depth, motion metrics and flow EPE of pass k; for ``refined``: depth metrics of the refinement
@@ -14,7 +16,7 @@ in MLflow) is the refined depth with the last pass's motion and flow, as DeMoN's
 from __future__ import annotations
 
 import logging
-from collections.abc import Sequence
+from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -22,12 +24,32 @@ import torch
 from torch.utils.data import DataLoader
 
 from demon_lab.core import execution, metrics
-from demon_lab.nets.chain import DeMoN
+from demon_lab.nets.chain import ChainOutput, DeMoN
 
 log = logging.getLogger(__name__)
 
 
-@torch.no_grad()
+def run_chain(chain: DeMoN, batches: Iterable[dict[str, Any]], iterations: int, oracle: str | None = None,
+              precision: Any = 32, channels_last: bool = False
+              ) -> Iterator[tuple[dict[str, Any], dict[str, Any], ChainOutput]]:
+    """The chain on each batch of ``batches`` (a loader, or any iterable of collated batches):
+    yields the batch as given, the batch on the chain's device (the device of its parameters; its
+    image-like tensors channels-last if ``channels_last``) and the chain's output, ``iterations`` passes after
+    the bootstrap and the refined depth. The chain runs without gradients, its nets in
+    ``precision`` (:mod:`demon_lab.core.execution`; the predictions it returns are float32);
+    ``oracle`` feeds it the batch's ground truth (:class:`DeMoN`). The caller's code between the
+    batches runs outside that autocast region, with gradients as the caller has them."""
+    device = next(chain.parameters()).device
+    for batch in batches:
+        inputs = {k: v.to(device) if isinstance(v, torch.Tensor) else v for k, v in batch.items()}
+        inputs = execution.channels_last_batch(inputs, channels_last)
+        gt = {"inv_depth": inputs["inv_depth"], "motion": inputs["motion"]} if oracle else None
+        with torch.no_grad(), execution.autocast(device, precision):
+            out = chain(inputs["image1"], inputs["image2"], inputs["intrinsics"], iterations=iterations,
+                        oracle=oracle, gt=gt)
+        yield batch, inputs, out
+
+
 def evaluate_dataset(chain: DeMoN, dataset, iterations: int, oracle: str | None = None,
                      batch_size: int = 4, max_samples: int | None = None, keep: int = 0,
                      refined: bool = True, histogram: metrics.PixelHistogram | None = None,
@@ -36,22 +58,17 @@ def evaluate_dataset(chain: DeMoN, dataset, iterations: int, oracle: str | None 
     """Per-sample metric rows (one per sample and iteration, ``it`` = 0..N or 'refined') and the
     raw predictions of the first ``keep`` samples (for visualisations). ``refined=False`` (the
     refinement net was not trained) leaves out the refined rows. ``histogram`` collects the
-    per-pixel errors of the final depth (refined, else the last pass). The chain runs on the device
-    of its parameters, its nets in ``precision`` (:mod:`demon_lab.core.execution`; the predictions it
-    returns, and so the metrics, are float32), the images channels-last if ``channels_last``."""
+    per-pixel errors of the final depth (refined, else the last pass). The chain runs as
+    :func:`run_chain` runs it (``precision``, ``channels_last``); the metrics are computed on the
+    host, from the float32 predictions."""
     n = len(dataset) if max_samples is None else min(len(dataset), int(max_samples))
     subset = torch.utils.data.Subset(dataset, range(n))
     protocol = metrics.protocol(dataset)
-    device = next(chain.parameters()).device
     rows: list[dict[str, Any]] = []
     kept: list[dict[str, Any]] = []
-    for batch in DataLoader(subset, batch_size=batch_size, shuffle=False):
-        b = {k: v.to(device) if isinstance(v, torch.Tensor) else v for k, v in batch.items()}
-        b = execution.channels_last_batch(b, channels_last)
-        gt = {"inv_depth": b["inv_depth"], "motion": b["motion"]} if oracle else None
-        with execution.autocast(device, precision):
-            out = chain(b["image1"], b["image2"], b["intrinsics"], iterations=iterations, oracle=oracle, gt=gt)
-        for i in range(b["image1"].shape[0]):
+    loader = DataLoader(subset, batch_size=batch_size, shuffle=False)
+    for batch, _, out in run_chain(chain, loader, iterations, oracle, precision, channels_last):
+        for i in range(batch["image1"].shape[0]):
             truth = metrics.ground_truth({k: v[i] for k, v in batch.items() if isinstance(v, torch.Tensor)}, dataset)
             for k, p in enumerate(out.passes):
                 pred = {"inv_depth": p.inv_depth[i, 0].cpu(), "motion": p.motion[i].cpu(), "flow": p.flow[i].cpu()}

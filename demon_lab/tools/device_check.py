@@ -32,6 +32,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import datetime as dt
+import itertools
 import json
 import os
 import subprocess
@@ -209,25 +210,24 @@ def part_tests(check: Check) -> None:
 
 
 def part_inference(check: Check, dims: Dims) -> None:
+    """The evaluation's loop (:func:`demon_lab.pipeline.evaluate.run_chain`) on one batch, repeated."""
     from demon_lab.nets.chain import DeMoN
+    from demon_lab.pipeline.evaluate import run_chain
 
     torch.manual_seed(0)
     for batch_size in (1, dims.batch):
         for precision, channels_last in (("32-true", False), ("bf16-mixed", True)):
             chain = execution.prepare_nets(DeMoN("v1", dims.width, dims.size).to(check.device).eval(), channels_last)
+            # the batch in the layout run_chain gives it: the timed loop is the chain's alone
             b = execution.channels_last_batch(_batch(dims, batch_size, check.device), channels_last)
-
-            def forward(chain=chain, b=b, precision=precision):
-                with torch.no_grad(), execution.autocast(check.device, precision):
-                    chain(b["image1"], b["image2"], b["intrinsics"], iterations=3)
-
+            outputs = run_chain(chain, itertools.repeat(b), 3, precision=precision, channels_last=channels_last)
             with execution.peak_memory(check.device) as memory:
-                forward()
+                next(outputs)
                 check.sync()
                 start = time.perf_counter()
                 n = 0
                 while n < 3 or time.perf_counter() - start < dims.seconds:
-                    forward()
+                    next(outputs)
                     check.sync()
                     n += 1
                 rate = n * batch_size / (time.perf_counter() - start)

@@ -36,6 +36,8 @@ from pathlib import Path
 import torch
 
 from demon_lab.core import losses
+from demon_lab.nets.chain import ChainOutput, downsample_image, flow_net_inputs, net_intrinsics
+from demon_lab.pipeline.evaluate import run_chain
 
 COLUMNS = ("epe", "flow", "gt_flow", "prior", "prior_epe", "follow", "t_norm", "rot_deg", "gt_rot_deg",
            "nonpositive_depth")
@@ -50,46 +52,41 @@ def _pixel_mean(x: torch.Tensor) -> torch.Tensor:
     return torch.where(count > 0, total / count.clamp_min(1), torch.full_like(total, math.nan))
 
 
-def diagnose_batch(chain, batch: dict, iterations: int, refine: bool = False) -> list[list[dict[str, float]]]:
-    """Per pass (0..iterations), per sample of ``batch``: the numbers the module docstring names;
-    with ``refine``, one more entry for the refined depth (only ``nonpositive_depth`` set)."""
-    from demon_lab.nets.chain import downsample_image, flow_net_inputs, net_intrinsics
-
+def diagnose_batch(batch: dict, out: ChainOutput, compat: str | None = None,
+                   refine: bool = False) -> list[list[dict[str, float]]]:
+    """Per pass of ``out`` (the chain's output on ``batch``), per sample: the numbers the module
+    docstring names; with ``refine``, one more entry for the refined depth (only
+    ``nonpositive_depth`` set). ``compat``: the chain's, with which its iterative flow net builds
+    the prior."""
     gt = losses.ground_truth(batch)
-    pair = torch.cat([batch["image1"], batch["image2"]], 1)
     image2_2, K = downsample_image(batch["image2"]), batch["intrinsics"]
     gt_flow = gt["flow2"]
+    n = batch["image1"].shape[0]
     passes = []
-    with torch.no_grad():
-        prev = None
-        for k in range(iterations + 1):
-            if k == 0:
-                p, prior = chain.bootstrap(pair, image2_2, K), None
-            else:
-                compat = getattr(chain, "compat", None)
-                prior = flow_net_inputs(image2_2, prev.inv_depth, prev.normals, prev.motion,
-                                        net_intrinsics(K, compat), compat)[:, 3:5]
-                p = chain.iterate(pair, image2_2, K, prev)
-            nan = torch.full((pair.shape[0],), math.nan)
-            row = {
-                "epe": _pixel_mean((p.flow - gt_flow).norm(dim=1)),
-                "flow": _pixel_mean(p.flow.norm(dim=1)),
-                "gt_flow": _pixel_mean(gt_flow.norm(dim=1)),
-                "prior": nan if prior is None else _pixel_mean(prior.norm(dim=1)),
-                "prior_epe": nan if prior is None else _pixel_mean((prior - gt_flow).norm(dim=1)),
-                "follow": nan if prior is None else _pixel_mean((p.flow - prior).norm(dim=1)),
-                "t_norm": p.motion[:, 3:].norm(dim=1),
-                "rot_deg": torch.rad2deg(p.motion[:, :3].norm(dim=1)),
-                "gt_rot_deg": torch.rad2deg(gt["motion"][:, :3].norm(dim=1)),
-                "nonpositive_depth": (~(p.inv_depth > 0)).flatten(1).float().mean(1),
-            }
-            passes.append([{key: float(v[i]) for key, v in row.items()} for i in range(pair.shape[0])])
-            prev = p
-        if refine:
-            refined = chain.refine(batch["image1"], prev.inv_depth)[:, :1]
-            share = (~(refined > 0)).flatten(1).float().mean(1)
-            passes.append([{**dict.fromkeys(COLUMNS, math.nan), "nonpositive_depth": float(share[i])}
-                           for i in range(pair.shape[0])])
+    for k, p in enumerate(out.passes):
+        if k == 0:
+            prior = None
+        else:
+            prev = out.passes[k - 1]
+            prior = flow_net_inputs(image2_2, prev.inv_depth, prev.normals, prev.motion,
+                                    net_intrinsics(K, compat), compat)[:, 3:5]
+        nan = torch.full((n,), math.nan)
+        row = {
+            "epe": _pixel_mean((p.flow - gt_flow).norm(dim=1)),
+            "flow": _pixel_mean(p.flow.norm(dim=1)),
+            "gt_flow": _pixel_mean(gt_flow.norm(dim=1)),
+            "prior": nan if prior is None else _pixel_mean(prior.norm(dim=1)),
+            "prior_epe": nan if prior is None else _pixel_mean((prior - gt_flow).norm(dim=1)),
+            "follow": nan if prior is None else _pixel_mean((p.flow - prior).norm(dim=1)),
+            "t_norm": p.motion[:, 3:].norm(dim=1),
+            "rot_deg": torch.rad2deg(p.motion[:, :3].norm(dim=1)),
+            "gt_rot_deg": torch.rad2deg(gt["motion"][:, :3].norm(dim=1)),
+            "nonpositive_depth": (~(p.inv_depth > 0)).flatten(1).float().mean(1),
+        }
+        passes.append([{key: float(v[i]) for key, v in row.items()} for i in range(n)])
+    if refine:
+        share = (~(out.refined[:, :1] > 0)).flatten(1).float().mean(1)
+        passes.append([{**dict.fromkeys(COLUMNS, math.nan), "nonpositive_depth": float(share[i])} for i in range(n)])
     return passes
 
 
@@ -154,8 +151,8 @@ def run(overrides: Sequence[str], out: str | None = None) -> dict[str, list[dict
         dataset = instantiate(spec)
         loader = torch.utils.data.DataLoader(dataset, batch_size=int(cfg.eval.batch_size))
         per_pass: list[list[dict[str, float]]] = [[] for _ in range(int(cfg.iterations) + 1 + refine)]
-        for batch in loader:
-            for k, samples in enumerate(diagnose_batch(chain, batch, int(cfg.iterations), refine)):
+        for _, batch, output in run_chain(chain, loader, int(cfg.iterations)):  # on the CPU, in float32
+            for k, samples in enumerate(diagnose_batch(batch, output, chain.compat, refine)):
                 per_pass[k] += samples
         results[dataset.name] = summarize(per_pass)
         for k, row in enumerate(results[dataset.name]):

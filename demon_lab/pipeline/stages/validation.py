@@ -19,12 +19,13 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from typing import Any
 
 import lightning as L
 import torch
 
-from demon_lab.core import execution, losses, metrics
-from demon_lab.nets.chain import downsample_image
+from demon_lab.core import losses, metrics
+from demon_lab.pipeline.evaluate import run_chain
 
 MOTION_STAGES = ("dm1", "dm2", "iterative")
 
@@ -53,12 +54,11 @@ class StageValidation(L.Callback):
         chain_training = chain.training
         chain.eval()
         try:
-            # the stage's precision (its autocast region; losses and geometry stay float32 inside)
-            with torch.no_grad(), trainer.precision_plugin.forward_context():
-                values = {}
-                for dataset in self.datasets:
-                    scores = self._scores(chain, dataset, getattr(module, "channels_last", False))
-                    values.update({f"val/{dataset.name}/{k}": v for k, v in scores.items()})
+            values = {}
+            for dataset in self.datasets:
+                scores = self._scores(chain, dataset, getattr(module, "channels_last", False),
+                                      trainer.precision_plugin.precision)
+                values.update({f"val/{dataset.name}/{k}": v for k, v in scores.items()})
         finally:
             chain.training = chain_training  # the container's own flag, then each net's
             for name, net in module.nets():
@@ -69,22 +69,16 @@ class StageValidation(L.Callback):
             values = {k: v for k, v in values.items() if not k.endswith("zero_flow_epe")}
         trainer.logger.log_metrics({k: v for k, v in values.items() if math.isfinite(v)}, step=step)
 
-    def _scores(self, chain, dataset, channels_last: bool = False) -> dict[str, float]:
+    def _scores(self, chain, dataset, channels_last: bool = False, precision: Any = 32) -> dict[str, float]:
+        """The module docstring's metrics on ``dataset``, the chain's nets in ``precision`` (the stage's)."""
         rows: dict[str, list[float]] = {"epe": [], "zero_flow_epe": [], "rot_deg": [], "tran_deg": [], "l1_inv": []}
         loader = torch.utils.data.DataLoader(dataset, batch_size=self.batch_size, shuffle=False)
-        device = next(chain.parameters()).device
-        for batch in loader:
-            b = {k: v.to(device) if isinstance(v, torch.Tensor) else v for k, v in batch.items()}
-            b = execution.channels_last_batch(b, channels_last)
-            pair = torch.cat([b["image1"], b["image2"]], 1)
-            image2_2, K = downsample_image(b["image2"]), b["intrinsics"]
-            p = chain.bootstrap(pair, image2_2, K)
-            for _ in range(self.iterations):
-                p = chain.iterate(pair, image2_2, K, p)
+        for _, b, out in run_chain(chain, loader, self.iterations, precision=precision, channels_last=channels_last):
+            p = out.passes[-1]
             gt = losses.ground_truth(b)
             error = (p.flow - gt["flow2"]).norm(dim=1)
             zero = gt["flow2"].norm(dim=1)
-            for i in range(pair.shape[0]):
+            for i in range(p.flow.shape[0]):
                 rows["epe"].append(float(error[i][torch.isfinite(error[i])].mean()))
                 rows["zero_flow_epe"].append(float(zero[i][torch.isfinite(zero[i])].mean()))
                 if self.stage in MOTION_STAGES:
@@ -92,12 +86,12 @@ class StageValidation(L.Callback):
                     rows["rot_deg"].append(motion["rot_deg"])
                     rows["tran_deg"].append(motion["tran_deg"])
             if self.stage == "refine":
-                depth, target = chain.refine(b["image1"], p.inv_depth), gt["inv_depth0"]
+                depth, target = out.refined, gt["inv_depth0"]
             elif self.stage in MOTION_STAGES:
                 depth, target = p.inv_depth, gt["inv_depth2"]
             else:
                 continue
             diff = (depth[:, :1] - target).abs()
-            for i in range(pair.shape[0]):
+            for i in range(p.flow.shape[0]):
                 rows["l1_inv"].append(float(diff[i][torch.isfinite(diff[i])].mean()))
         return {k: _mean(v) for k, v in rows.items() if v}
