@@ -1,72 +1,109 @@
-"""``python -m demon_lab [overrides]``: compose, validate, run each job (:mod:`demon_lab.app.job`).
+"""``python -m demon_lab [overrides]``: check every job, then let Hydra run them (:mod:`demon_lab.app.job`).
 
-The configuration of every job (each combination of a ``-m`` sweep) is composed and validated
-before Hydra starts, so a bad key, type or value is one line and a non-zero exit, with no MLflow
-run created.
+Before Hydra starts, :func:`check` composes each job of the command as Hydra will (a ``-m`` sweep
+expanded by the sweep's own sweeper, :mod:`demon_lab.app.sweeper`, each job composed by Hydra's
+config loader as its launcher composes it) and validates it, so a bad key, type or value in any job
+is one line and a non-zero exit, with no MLflow run created and no job started. Hydra then composes
+each job once more, to run it, and nothing else composes it: the sweeper leaves out the basic
+sweeper's own composition of each batch before its launch, and the job does not compose. (Before it
+runs anything, Hydra also composes the command's primary config in sweep mode to read ``hydra.mode``
+from it; for a single run that is its job's config.)
 """
 
 from __future__ import annotations
 
-import itertools
+import argparse
 import sys
+from typing import Any
 
 from demon_lab import resources
 
 CONF = str(resources.CONF)
-MAX_CHECKED_JOBS = 256
-
-
-def _job_overrides(args: list[str]) -> list[list[str]]:
-    """The overrides of each job: sweeps (a=1,2) expanded, Hydra's own options left out. With
-    ``-m``, the sweeps an experiment declares in ``hydra.sweeper.params`` are expanded too (the
-    command line wins for a key it also sets), as Hydra's basic sweeper does."""
-    from hydra.core.override_parser.overrides_parser import OverridesParser
-
-    plain = [a for a in args if not a.startswith("-") and not a.lstrip("+~").startswith(("hydra.", "hydra/"))]
-    parser = OverridesParser.create()
-    parsed = parser.parse_overrides(plain)
-    if any(a in ("-m", "--multirun") for a in args):
-        from hydra import compose
-
-        fixed = [o.input_line for o in parsed if not o.is_sweep_override()]
-        params = compose("config", overrides=fixed, return_hydra_config=True).hydra.sweeper.get("params") or {}
-        given = {o.get_key_element().lstrip("+~") for o in parsed}
-        extra = [f"{k}={v}" for k, v in params.items() if k.lstrip("+~") not in given]
-        parsed += parser.parse_overrides(extra)
-    choices = []
-    for o in parsed:
-        if o.is_sweep_override():
-            choices.append([f"{o.get_key_element()}={v}" for v in o.sweep_string_iterator()])
-        else:
-            choices.append([o.input_line])
-    jobs = [list(c) for c in itertools.product(*choices)] if choices else [[]]
-    return jobs[:MAX_CHECKED_JOBS]
-
+CONFIG_NAME = "config"
 
 REMOTE_LAUNCHERS = ("slurm", "slurm_ddp")
 """Launchers whose jobs run on other machines: their device-dependent checks run in the job."""
 
 
+def _arguments(args: list[str]) -> argparse.Namespace:
+    """The command line as Hydra's own parser reads it (overrides, -m, the flags that run no job),
+    flags among the overrides included, so that a bad job is named whatever the order."""
+    from hydra._internal.utils import get_args_parser
+
+    return get_args_parser().parse_intermixed_args(args)
+
+
+def _runs_jobs(parsed: argparse.Namespace) -> bool:
+    """False for the flags that print something instead of running jobs (--help, --cfg, --info, ...)."""
+    return not (parsed.help or parsed.hydra_help or parsed.cfg or parsed.info is not None or parsed.shell_completion
+                or parsed.experimental_rerun is not None)
+
+
+def _primary(parsed: argparse.Namespace) -> tuple[Any, Any]:
+    """Hydra's config loader and the command's primary config, composed as Hydra composes it (a
+    sweep's without its swept values); inside an initialized Hydra."""
+    from hydra.core.global_hydra import GlobalHydra
+    from hydra.types import RunMode
+
+    loader = GlobalHydra.instance().config_loader()
+    mode = RunMode.MULTIRUN if parsed.multirun else RunMode.RUN
+    overrides = [*parsed.overrides, f"hydra.mode={mode.name}"]  # what hydra.main adds
+    return loader, loader.load_configuration(parsed.config_name or CONFIG_NAME, overrides, mode)
+
+
+def _job_overrides(loader: Any, primary: Any) -> list[list[str]]:
+    """The overrides of each job of a sweep, as its sweeper expands them (``hydra.sweeper.params``,
+    then the command line)."""
+    from demon_lab.app.sweeper import Sweeper
+
+    batches = Sweeper.batches(primary.hydra.sweeper.get("params"), primary.hydra.overrides.task, loader)
+    return [job for batch in batches for job in batch]
+
+
+def sweep_jobs(args: list[str]) -> list[list[str]]:
+    """The overrides of each job that ``python -m demon_lab ARGS`` runs: with ``-m``, every job of
+    the sweep (the one an experiment declares included), as the sweep's sweeper expands it; without,
+    the one job's overrides."""
+    from hydra import initialize_config_dir
+
+    parsed = _arguments(args)
+    with initialize_config_dir(CONF, version_base="1.3"):
+        loader, primary = _primary(parsed)
+        return _job_overrides(loader, primary) if parsed.multirun else [list(primary.hydra.overrides.task)]
+
+
+def _two_lines(e: Exception) -> str:
+    lines = [line.strip() for line in str(e).splitlines() if line.strip()]
+    return " ".join(lines[:2]) if lines else type(e).__name__
+
+
 def check(args: list[str]) -> str | None:
-    """None if every job's config composes and validates, else the error line."""
-    from hydra import compose, initialize_config_dir
+    """None if every job of ``python -m demon_lab ARGS`` composes and validates, else the error line.
+    Each job is composed once here, by Hydra's config loader, as its launcher will compose it."""
+    from hydra import initialize_config_dir
     from hydra.errors import HydraException
+    from omegaconf import open_dict, read_write
     from omegaconf.errors import OmegaConfBaseException
 
     from demon_lab.core.execution import processes_launched_outside, world_size
     from demon_lab.pipeline.config import ConfigError, drop_missing_sources
     from demon_lab.pipeline.validate import validate
 
+    parsed = _arguments(args)
+    multirun = bool(parsed.multirun)
     with initialize_config_dir(CONF, version_base="1.3"):
         try:
-            jobs = _job_overrides(args)
+            loader, primary = _primary(parsed)
+            jobs = _job_overrides(loader, primary) if multirun else [None]
         except (HydraException, OmegaConfBaseException) as e:
-            return str(e).splitlines()[0]
-        multirun = any(a in ("-m", "--multirun") for a in args)
-        launcher = next((a.split("=", 1)[1] for a in args if a.lstrip("+").startswith("hydra/launcher=")), "basic")
+            # a sweep's primary config, or its expansion; a single run's primary config is its job's
+            return str(e).splitlines()[0] if multirun else _two_lines(e)
+        launcher = primary.hydra.runtime.choices.get("hydra/launcher") or "basic"
         for overrides in jobs:
             try:
-                cfg = compose("config", overrides=overrides)
+                cfg = primary if overrides is None else loader.load_sweep_config(primary, overrides)
+                with read_write(cfg), open_dict(cfg):
+                    del cfg["hydra"]  # the job's config, as the task receives it
                 drop_missing_sources(cfg)
                 validate(cfg, here=launcher not in REMOTE_LAUNCHERS)
                 if multirun and launcher != "slurm_ddp" and world_size(cfg) > 1 and not processes_launched_outside():
@@ -78,19 +115,32 @@ def check(args: list[str]) -> str | None:
             except ConfigError as e:
                 return str(e)
             except (HydraException, OmegaConfBaseException) as e:
-                lines = [line.strip() for line in str(e).splitlines() if line.strip()]
-                return " ".join(lines[:2]) if lines else type(e).__name__
+                return _two_lines(e)
     return None
+
+
+def _register_sweeper() -> None:
+    """Hydra finds plugins by scanning the ``hydra_plugins`` namespace, which an editable install
+    hides from it: register the sweeper of ``conf/hydra/sweeper/demon_lab.yaml`` by hand."""
+    from hydra.core.plugins import Plugins
+
+    try:
+        from hydra_plugins.demon_lab_sweeper import DemonLabSweeper
+    except ImportError as e:
+        print(f"error: demon_lab's Hydra sweeper is not installed ({e}): install demon_lab again (pip install -e .)",
+              file=sys.stderr)
+        sys.exit(2)
+    Plugins.instance().register(DemonLabSweeper)
 
 
 def main() -> None:
     args = sys.argv[1:]
-    if not any(a in ("--help", "-h", "--hydra-help", "--info", "--cfg", "-c", "--shell-completion") or
-               a.startswith(("--cfg", "--info", "-c")) for a in args):
+    if _runs_jobs(_arguments(args)):
         error = check(args)
         if error:
             print(f"error: {error}", file=sys.stderr)
             sys.exit(2)
+    _register_sweeper()
     import hydra
 
     from demon_lab.app.job import main_task

@@ -7,7 +7,7 @@ import pytest
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
-from demon_lab.__main__ import CONF, _job_overrides
+from demon_lab.__main__ import CONF, sweep_jobs
 from tests.test_pipeline import SWEPT
 
 LAUNCHERS = {
@@ -23,9 +23,9 @@ SWEEPS = [[f"+experiment={e}"] for e in SWEPT] + [["iterations=0,1,2,3,4,5"]]
                                       for name in LAUNCHERS])
 @pytest.mark.parametrize("sweep", SWEEPS, ids=lambda s: s[0])
 def test_every_job_of_every_documented_sweep_composes_with_every_launcher(launcher, sweep):
+    jobs = sweep_jobs(["-m", *sweep, "scale=paper"])
+    assert len(jobs) >= 3
     with initialize_config_dir(CONF, version_base="1.3"):
-        jobs = _job_overrides(["-m", *sweep, "scale=paper"])
-        assert len(jobs) >= 3
         subdirs: set[str] = set()
         for job in jobs:
             extra = ["trainer.devices=4"] if launcher == "slurm_ddp" else []
@@ -45,6 +45,69 @@ def test_every_job_of_every_documented_sweep_composes_with_every_launcher(launch
             subdirs.add(cfg.hydra.sweep.subdir)
             assert all(o.lstrip("+") in cfg.hydra.sweep.subdir for o in job if "=" in o)
         assert len(subdirs) == len(jobs)  # each job its own folder, the same on every re-issue
+
+
+def test_sweeps_run_through_demon_labs_sweeper_which_hydra_instantiates():
+    """conf/config.yaml selects hydra/sweeper=demon_lab: an experiment's declared sweep still reaches it,
+    and Hydra instantiates it from the hydra_plugins name it requires of a sweeper (registered by hand by
+    python -m demon_lab, as an editable install hides the namespace from Hydra's scan)."""
+    from types import SimpleNamespace
+
+    from hydra.core.plugins import Plugins
+    from hydra.types import HydraContext
+
+    from demon_lab.__main__ import _register_sweeper
+    from demon_lab.app.sweeper import Sweeper
+
+    with initialize_config_dir(CONF, version_base="1.3"):
+        cfg = compose("config", overrides=["+experiment=iterations"], return_hydra_config=True)
+    assert cfg.hydra.sweeper._target_ == "hydra_plugins.demon_lab_sweeper.DemonLabSweeper"
+    assert dict(cfg.hydra.sweeper.params) == {"iterations": "0,1,2,3,4,5", "seed": "0,1,2"}
+    _register_sweeper()
+    context = HydraContext(config_loader=None, callbacks=SimpleNamespace(callbacks=[]))
+    sweeper = Plugins.instance().instantiate_sweeper(config=cfg, hydra_context=context, task_function=print)
+    assert isinstance(sweeper, Sweeper) and sweeper.params == cfg.hydra.sweeper.params
+
+
+def test_the_sweeper_launches_every_batch_past_a_failed_job_and_composes_nothing(tmp_path):
+    """The basic sweeper's jobs and batches (the command line wins over hydra.sweeper.params); no
+    composition of its own (the check composed every job before Hydra started: the config loader is
+    never called); a FAILED job does not stop the sweep; each batch's JobReturns reach the callbacks'
+    on_jobs_returned in the sweep's process."""
+    from types import SimpleNamespace
+
+    from hydra.core.utils import JobReturn, JobStatus
+
+    from demon_lab.app.sweeper import Sweeper
+
+    class NoComposition:
+        def __getattr__(self, name):
+            raise AssertionError(f"the sweeper composed a job (config_loader.{name})")
+
+    launched, handed = [], []
+
+    class Launcher:
+        def launch(self, job_overrides, initial_job_idx):
+            launched.append([list(o) for o in job_overrides])
+            return [JobReturn(overrides=list(o), status=JobStatus.FAILED if "seed=1" in o else JobStatus.COMPLETED)
+                    for o in job_overrides]
+
+    class Recorder:
+        def on_jobs_returned(self, config, job_returns):
+            handed.append([(r.overrides[0], r.status) for r in job_returns])
+
+    sweeper = Sweeper(max_batch_size=2, params={"seed": "0,1,2", "iterations": "5"})
+    sweeper.config = OmegaConf.create({"hydra": {"sweep": {"dir": str(tmp_path / "sweep")}}})
+    sweeper.hydra_context = SimpleNamespace(config_loader=NoComposition(),
+                                            callbacks=SimpleNamespace(callbacks=[Recorder(), object()]))
+    sweeper.launcher = Launcher()
+    returns = sweeper.sweep(["iterations=0", "method=demon"])
+    assert launched == [[["seed=0", "iterations=0", "method=demon"], ["seed=1", "iterations=0", "method=demon"]],
+                        [["seed=2", "iterations=0", "method=demon"]]]
+    assert handed == [[("seed=0", JobStatus.COMPLETED), ("seed=1", JobStatus.FAILED)],
+                      [("seed=2", JobStatus.COMPLETED)]]
+    assert [len(batch) for batch in returns] == [2, 1]
+    assert (tmp_path / "sweep" / "multirun.yaml").is_file()
 
 
 def test_site_settings_on_the_search_path_reach_the_slurm_launchers(tmp_path):

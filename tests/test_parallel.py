@@ -106,15 +106,22 @@ def test_an_unreachable_tracking_server_fails_before_any_work(tmp_path):
 
 
 def test_launcher_workers_get_no_store_client():
-    """The sweep callback travels to joblib/submitit workers pickled, without its client."""
+    """The sweep callback travels to joblib/submitit workers pickled, without its client, and hands
+    the parent run to the job there (on_job_start, in the job's process) until the job ends."""
     import pickle
 
+    from demon_lab.app import job
     from demon_lab.app.callbacks import MultirunTracking
 
     callback = MultirunTracking()
     callback.tracker, callback.parent = object(), "abc"
     copy = pickle.loads(pickle.dumps(callback))
     assert copy.tracker is None and copy.parent == "abc"
+    assert job._parent_run() is None
+    copy.on_job_start(config=None, task_function=job.main_task)
+    assert job._parent_run() == "abc"
+    copy.on_job_end(config=None, job_return=None)
+    assert job._parent_run() is None
 
 
 

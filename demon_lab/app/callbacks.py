@@ -2,30 +2,33 @@
 
 ``on_multirun_start`` creates the tracking store and the experiment once, before any job starts
 (parallel jobs racing to create a fresh SQLite database is a known MLflow failure), and the parent
-run whose id the jobs find in ``DEMON_LAB_PARENT_RUN`` (they tag themselves with
-``mlflow.parentRunId``). The same sweep command issued again (after a kill, a failure or a
-cluster pre-emption) continues the same parent run, so its children are every job of the sweep:
-the finished ones (skipped this time) and the ones run now.
+run. ``on_job_start`` hands the parent run id to the job in the job's own process
+(``demon_lab.app.job.PARENT_RUN``; with the joblib and SLURM launchers this callback travels there
+pickled, its parent id with it), and the job tags itself with ``mlflow.parentRunId``. The same sweep
+command issued again (after a kill, a failure or a cluster pre-emption) continues the same parent
+run, so its children are every job of the sweep: the finished ones (skipped this time) and the ones
+run now.
 
-A failing job never stops the sweep (``demon_lab.app.job.main_task``); ``on_multirun_end`` attaches
-the study's report (its tables and figures, from every FINISHED run in the store: ``report/`` in
-the parent run's artifacts, so the dashboard shows it), lists the jobs that failed this time, marks
-the parent FINISHED or FAILED and exits non-zero if any failed.
+A failing job never stops the sweep: Hydra ends it ``FAILED`` (``demon_lab.app.job.main_task``) and
+the sweeper launches the rest, handing each batch's JobReturns to ``on_jobs_returned`` in the
+sweep's own process, whatever the launcher (:mod:`demon_lab.app.sweeper`). ``on_multirun_end``
+attaches the study's report (its tables and figures, from every FINISHED run in the store:
+``report/`` in the parent run's artifacts, so the dashboard shows it), lists the jobs that failed
+this time, marks the parent FINISHED or FAILED and exits non-zero if any failed.
 """
 
 from __future__ import annotations
 
 import logging
-import os
 import sys
-import time
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from hydra.core.utils import JobReturn, JobStatus
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig
 
-PARENT_ENV = "DEMON_LAB_PARENT_RUN"
 log = logging.getLogger(__name__)
 
 
@@ -33,7 +36,7 @@ class MultirunTracking(Callback):
     def __init__(self) -> None:
         self.tracker = None
         self.parent: str | None = None
-        self.started = 0.0
+        self.failed: list[str] = []  # the folders of this sweep's failed jobs
         self.server = None
 
     def __getstate__(self) -> dict[str, Any]:
@@ -44,7 +47,7 @@ class MultirunTracking(Callback):
     def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
         from demon_lab.pipeline.tracking import TAG, Tracker
 
-        self.started = time.time() - 1.0
+        self.failed = []
         if config.tracking.get("server"):
             from demon_lab.pipeline.tracking import LocalServer, TrackingError
 
@@ -70,13 +73,32 @@ class MultirunTracking(Callback):
             self.parent = self.tracker.start(f"sweep {config.experiment}: {overrides}"[:250],
                                              {f"{TAG}kind": "sweep", f"{TAG}sweep": overrides,
                                               f"{TAG}sweep_key": key, f"{TAG}experiment": config.experiment})
-        os.environ[PARENT_ENV] = self.parent
+
+    def on_job_start(self, config: DictConfig, **kwargs: Any) -> None:
+        """In the job's process, just before the task: the sweep's parent run for the job (None in a
+        single run, which has no multirun start)."""
+        from demon_lab.app.job import PARENT_RUN
+
+        PARENT_RUN.set(self.parent)
+
+    def on_job_end(self, config: DictConfig, job_return: JobReturn, **kwargs: Any) -> None:
+        from demon_lab.app.job import PARENT_RUN
+
+        PARENT_RUN.set(None)
+
+    def on_jobs_returned(self, config: DictConfig, job_returns: Sequence[JobReturn], **kwargs: Any) -> None:
+        """In the sweep's process, after each batch (:mod:`demon_lab.app.sweeper`): the failed jobs'
+        folders, each with its ``error.txt``, as the command line shows them."""
+        for r in job_returns:
+            if r.status == JobStatus.FAILED:
+                folder = Path(r.hydra_cfg.hydra.runtime.output_dir)
+                self.failed.append(str(folder.relative_to(Path.cwd()) if folder.is_relative_to(Path.cwd())
+                                       else folder))
 
     def on_multirun_end(self, config: DictConfig, **kwargs: Any) -> None:
         from demon_lab.pipeline.tracking import TAG
 
-        sweep_dir = Path(config.hydra.sweep.dir)
-        failed = sorted(p.parent for p in sweep_dir.rglob("error.txt") if p.stat().st_mtime >= self.started)
+        failed = sorted(self.failed)
         if self.tracker is not None and self.parent is not None:
             children = self.tracker.children(self.parent)
             counts = {s: sum(1 for r in children if r.info.status == s) for s in ("FINISHED", "FAILED", "RUNNING")}
@@ -87,14 +109,13 @@ class MultirunTracking(Callback):
                                                 f"{TAG}jobs_failed_now": len(failed)})
             self._publish_study(config)
             self.tracker.finish(self.parent, "FAILED" if failed else "FINISHED")
-            os.environ.pop(PARENT_ENV, None)
             log.info("sweep run %s: %d job runs FINISHED, %d FAILED%s", self.parent, counts["FINISHED"],
                      counts["FAILED"] - retried,
                      f" ({retried} earlier FAILED attempt(s) of jobs that have since FINISHED)" if retried else "")
         if self.server is not None:
             self.server.stop()
         if failed:
-            listing = "; ".join(str(p) for p in failed)
+            listing = "; ".join(failed)
             print(f"error: {len(failed)} job(s) of the sweep failed (each folder has error.txt): {listing}",
                   file=sys.stderr, flush=True)
             sys.exit(1)

@@ -3,6 +3,10 @@
 :func:`run` is the job (called once per combination of a ``-m`` sweep); :func:`main_task` is the
 Hydra task around it, which turns known errors into one line and keeps a failing job from stopping
 its sweep. The tracking contract (what a run holds) is in docs/running.md, "Tracking".
+
+A job of a sweep is a child of the sweep's parent run: the sweep's Hydra callback hands the parent
+run id to the job in :data:`PARENT_RUN`, in the job's own process, just before the task runs
+(:meth:`demon_lab.app.callbacks.MultirunTracking.on_job_start`).
 """
 
 from __future__ import annotations
@@ -13,6 +17,7 @@ import json
 import logging
 import sys
 import tempfile
+from contextvars import ContextVar
 from pathlib import Path
 from typing import Any
 
@@ -23,6 +28,18 @@ from demon_lab.pipeline.config import ConfigError
 from demon_lab.pipeline.validate import CHAIN_METHODS, validate
 
 log = logging.getLogger(__name__)
+
+PARENT_RUN: ContextVar[str | None] = ContextVar("demon_lab_parent_run", default=None)
+"""The sweep's parent run id for the job about to run, or None (a single run). Set in the job's
+process by the sweep's callback (``MultirunTracking.on_job_start``, which joblib and SLURM launchers
+carry into that process pickled), cleared by its ``on_job_end``."""
+
+
+class JobFailed(Exception):
+    """A job of a sweep failed: its one line is printed and its traceback is in ``error.txt`` in its
+    folder. :func:`main_task` raises it so that Hydra ends the job ``JobStatus.FAILED`` and the sweep
+    counts it (:mod:`demon_lab.app.sweeper`); it holds the line alone, so it travels back from a
+    joblib or SLURM process and keeps nothing of the job alive."""
 
 
 def job_tags(cfg: DictConfig, key: str) -> dict[str, str]:
@@ -205,11 +222,7 @@ def _run_id_file() -> Path | None:
 
 def _parent_run() -> str | None:
     """The multirun's parent run id (created once per sweep by the Hydra callback), if any."""
-    import os
-
-    from demon_lab.app.callbacks import PARENT_ENV
-
-    return os.environ.get(PARENT_ENV) or None
+    return PARENT_RUN.get()
 
 
 def known_errors() -> tuple[type[BaseException], ...]:
@@ -228,8 +241,9 @@ def main_task(cfg: DictConfig) -> None:
     tracking-store or checkpoint error or diverged training, and with the traceback on anything
     else. In a multirun a failing job never stops the sweep: its run is
     FAILED with the error recorded, it prints one line, leaves ``error.txt`` (with the traceback)
-    in its output folder, and the sweep goes on; the sweep's end lists the failures and exits
-    non-zero (:class:`demon_lab.app.callbacks.MultirunTracking`)."""
+    in its output folder and raises :class:`JobFailed`, so that Hydra ends it ``FAILED``; the sweep
+    goes on (:mod:`demon_lab.app.sweeper`), and its end lists the failures and exits non-zero
+    (:class:`demon_lab.app.callbacks.MultirunTracking`)."""
     import traceback
 
     job_dir = _hydra_output_dir(multirun_only=True)
@@ -237,6 +251,7 @@ def main_task(cfg: DictConfig) -> None:
     if marker is not None:
         marker.unlink(missing_ok=True)
     server = None
+    failure = None
     try:
         from demon_lab.core.execution import global_rank
 
@@ -258,6 +273,9 @@ def main_task(cfg: DictConfig) -> None:
         line = str(e).strip().splitlines()[0] if str(e).strip() else ""
         what = line if known else f"{type(e).__name__}: {line}"
         print(f"error: {what} (traceback in {marker})", file=sys.stderr, flush=True)
+        failure = JobFailed(what)  # raised outside this block, so that it holds nothing of e
     finally:
         if server is not None:
             server.stop()
+    if failure is not None:
+        raise failure
