@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+import yaml
 from hydra import compose, initialize_config_dir
 
 from demon_lab import resources
@@ -68,7 +69,8 @@ def test_smoke_pipeline_records_a_finished_run(smoke_run):
     assert run.info.status == "FINISHED"
     tags = run.data.tags
     assert tags["demon_lab.run_key"] == result["run_key"] and tags["demon_lab.scale"] == "smoke"
-    assert tags["demon_lab.seed"] == "0" and "demon_lab.git_commit" in tags and "demon_lab.torch" in tags
+    assert tags["demon_lab.seed"] == "0" and "demon_lab.torch" in tags
+    assert tags["mlflow.source.name"] and tags["demon_lab.git_dirty"] in ("true", "false", "unknown")
     # threads=1 took effect and is not part of what the job computes (same run key without it)
     assert tags["demon_lab.cpu_threads"] == "1" and run.data.params["threads"] == "1"
     assert result["run_key"] == run_key(compose_config(smoke_overrides(tmp)))
@@ -340,11 +342,10 @@ composes)."""
                                    pytest.param("paper", marks=pytest.mark.slow)])
 def test_every_experiment_sweep_composes_and_validates(experiment, scale):
     """Each job of an experiment's declared sweep (hydra.sweeper.params) composes and validates."""
-    from demon_lab.__main__ import _job_overrides
+    from demon_lab.__main__ import sweep_jobs
 
     args = ["-m", f"+experiment={experiment}", f"scale={scale}"]
-    with initialize_config_dir(CONF, version_base="1.3"):
-        jobs = _job_overrides(args)
+    jobs = sweep_jobs(args)
     assert len(jobs) >= 3 and {o.split("=")[0] for job in jobs for o in job} >= {"seed"}
     assert check(args) is None
 
@@ -429,7 +430,7 @@ def test_a_flow_net_option_keys_every_stage_and_the_run_and_is_absent_by_default
     from demon_lab.pipeline.stages.schedule import build_chain, stage_dirs
 
     with initialize_config_dir(CONF, version_base="1.3"):
-        plain = compose("config", [f"scale={scale}", f"model.{key}=null"])  # (the cpu profile sets flow1_prior)
+        plain = compose("config", [f"scale={scale}"])
         changed = compose("config", [f"scale={scale}", option])
     assert plain.model[key] is None and key not in semantic_config(plain)["model"]
     assert all(a.key != b.key for a, b in zip(stage_dirs(plain), stage_dirs(changed), strict=True))
@@ -447,7 +448,7 @@ def test_a_motion_prior_keys_the_stages_from_its_net_on_and_shares_those_before(
 
     key, value = option.split("=")
     with initialize_config_dir(CONF, version_base="1.3"):
-        plain = compose("config", ["scale=cpu", f"model.{key}=null"])
+        plain = compose("config", ["scale=cpu"])
         prior = compose("config", ["scale=cpu", f"model.{option}"])
     assert plain.model[key] is None and run_key(plain) != run_key(prior)
     a, b = stage_dirs(plain), stage_dirs(prior)
@@ -459,25 +460,27 @@ def test_a_motion_prior_keys_the_stages_from_its_net_on_and_shares_those_before(
     assert getattr(build_chain(prior), key) == value and getattr(build_chain(plain), key) is None
 
 
-def test_only_the_cpu_profile_departs_from_demons_design_and_the_probe_studies_do_not():
-    """The cpu profile takes the four priors; the smoke and paper profiles (and so DeMoN's released
-    design at paper scale) take none; the probe studies that measured DeMoN's design keep it."""
+def test_every_profile_keeps_demons_design_and_the_departures_study_names_each_prior_it_turns_on():
+    """No profile takes a prior (the four priors are the cpu_departures study's candidate profile);
+    each row of that study turns on exactly the priors its name says, and row profile all four."""
     from demon_lab.pipeline.stages.schedule import PRIOR_KEYS, build_chain
 
-    profile = {"flow1_prior": "dis", "dm1_prior": "ransac", "flow2_prior": "previous", "dm2_prior": "previous"}
-    assert set(PRIOR_KEYS) == set(profile)
+    spec = yaml.safe_load((resources.STUDIES / "cpu_departures.yaml").read_text())
+    four = {"flow1_prior": "dis", "dm1_prior": "ransac", "flow2_prior": "previous", "dm2_prior": "previous"}
+    assert set(PRIOR_KEYS) == set(four)
     with initialize_config_dir(CONF, version_base="1.3"):
-        cpu = compose("config", ["scale=cpu"])
-        others = [compose("config", [f"scale={scale}"]) for scale in ("smoke", "paper")]
-        probes = [compose("config", ["scale=cpu", f"+experiment={name}"])
-                  for name in ("cpu_recipe", "cpu_design", "cpu_motion", "cpu_prior")]
-        departures = compose("config", ["scale=cpu", "+experiment=cpu_departures"])
-    assert {k: cpu.model[k] for k in profile} == profile
-    assert {k: departures.model[k] for k in profile} == profile
-    for cfg in others + probes:
-        assert all(cfg.model[k] is None for k in profile)
-    chain = build_chain(cpu)
-    assert (chain.flow1_prior, chain.dm1_prior, chain.flow2_prior, chain.dm2_prior) == tuple(profile.values())
+        for scale in ("smoke", "cpu", "paper"):
+            assert all(compose("config", [f"scale={scale}"]).model[k] is None for k in four)
+        rows = {}
+        for run in spec["runs"]:
+            cfg = compose("config", ["scale=cpu", *run])
+            rows[cfg.row] = {k: cfg.model[k] for k in four}
+    assert rows["profile"] == four and rows["demon"] == dict.fromkeys(four)
+    for key in four:
+        assert rows[f"no_{key}"] == {**four, key: None}
+    with initialize_config_dir(CONF, version_base="1.3"):
+        chain = build_chain(compose("config", ["scale=cpu", *spec["runs"][0]]))
+    assert (chain.flow1_prior, chain.dm1_prior, chain.flow2_prior, chain.dm2_prior) == tuple(four.values())
 
 
 def test_train_stage_hands_the_probe_options_to_their_stages(tmp_path, monkeypatch):
@@ -713,6 +716,79 @@ def test_killed_training_stage_resumes_from_its_checkpoint(tmp_path):
     c = client(tmp_path)
     statuses = [r.info.status for r in c.search_runs([c.get_experiment_by_name("default").experiment_id])]
     assert "FINISHED" in statuses
+
+
+COUNTED_RUN = """
+import json, sys
+from hydra._internal.config_loader_impl import ConfigLoaderImpl
+from demon_lab.app import job
+from demon_lab.data.sample import DataError
+
+loads, seen = [], []
+compose = ConfigLoaderImpl.load_configuration
+
+
+def counted(self, config_name, overrides, run_mode, *args, **kwargs):
+    loads.append([run_mode.name, list(overrides)])
+    return compose(self, config_name, overrides, run_mode, *args, **kwargs)
+
+
+def run(cfg):  # the job, without its work: what it was handed
+    seen.append([int(cfg.seed), job._parent_run()])
+    if cfg.seed == 1:
+        raise DataError("seed 1 has no data")
+    return {"status": "finished"}
+
+
+ConfigLoaderImpl.load_configuration = counted
+job.run = run
+sys.argv = ["demon_lab", *sys.argv[1:]]
+from demon_lab.__main__ import main
+try:
+    main()
+finally:
+    print("COUNTED " + json.dumps({"loads": loads, "seen": seen}))
+"""
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("sweep", [True, False], ids=["sweep", "single"])
+def test_each_job_is_composed_twice_and_handed_the_parent_run(sweep, tmp_path):
+    """``python -m demon_lab`` with the job's work left out: each job is composed twice in all, with
+    the same overrides (the check before Hydra starts, then Hydra to run it; the sweeper and the job
+    compose nothing), the parent run reaches every job of a sweep (no single run gets one), and a job
+    that fails neither stops the sweep nor goes uncounted. Besides, Hydra composes the command's
+    primary config in multirun mode to read ``hydra.mode`` from it (``Hydra.get_mode``, before
+    anything else), and a sweep's primary config is composed by the check and by Hydra's multirun."""
+    import json
+
+    args = ["-m", *smoke_overrides(tmp_path), "seed=0,1,2"] if sweep else [*smoke_overrides(tmp_path), "seed=0"]
+    result = subprocess.run([sys.executable, "-c", COUNTED_RUN, *args], cwd=tmp_path, capture_output=True, text=True,
+                            timeout=600)
+    (line,) = [x for x in result.stdout.splitlines() if x.startswith("COUNTED ")]
+    counted = json.loads(line.removeprefix("COUNTED "))
+    jobs = [tuple(o) for mode, o in counted["loads"] if mode == "RUN"]
+    primaries = [o for mode, o in counted["loads"] if mode == "MULTIRUN"]
+    seeds = [0, 1, 2] if sweep else [0]
+    assert len(jobs) == 2 * len(seeds) and all(jobs.count(j) == 2 for j in jobs), counted["loads"]
+    assert sorted({o for j in jobs for o in j if o.startswith("seed=")}) == [f"seed={s}" for s in seeds]
+    assert len(primaries) == (3 if sweep else 1)  # Hydra's mode probe; a sweep's check and multirun
+    if not sweep:
+        assert result.returncode == 0, result.stderr[-3000:]
+        assert counted["seen"] == [[0, None]]
+        return
+    c = client(tmp_path)
+    (parent,) = c.search_runs([c.get_experiment_by_name("default").experiment_id])
+    assert counted["seen"] == [[s, parent.info.run_id] for s in seeds]
+    assert parent.info.status == "FAILED" and parent.data.tags["demon_lab.jobs_failed_now"] == "1"
+    assert result.returncode == 1
+    errors = [x for x in result.stderr.splitlines() if x.startswith("error: ")]
+    assert len(errors) == 2 and "Traceback" not in result.stderr, result.stderr[-3000:]
+    assert errors[0].startswith("error: seed 1 has no data (traceback in ")
+    assert errors[1].startswith("error: 1 job(s) of the sweep failed (each folder has error.txt): multirun/default/")
+    (folder,) = [p.parent for p in (tmp_path / "multirun").rglob("error.txt")]
+    assert "seed=1" in folder.name and errors[1].endswith(folder.name)
+    assert "DataError: seed 1 has no data" in (folder / "error.txt").read_text()
 
 
 @pytest.mark.slow

@@ -14,7 +14,7 @@ import pytest
 import torch
 
 from demon_lab.pipeline.stages.cache import CheckpointError, atomic_torch_save, load_checkpoint
-from demon_lab.pipeline.tracking import git_state, version_tags
+from demon_lab.pipeline.tracking import version_tags
 from tests.test_pipeline import cli, client, compose_config, smoke_overrides
 
 WRITER = """
@@ -175,7 +175,7 @@ def test_a_killed_job_resumes_into_its_run_with_the_uninterrupted_result(tmp_pat
     assert status == "RUNNING"  # what a kill leaves behind
     # As if the killed attempt ran older code: the resumed run is tagged with the code that finishes it.
     client(tmp_path / "b").delete_tag(killed_id, "demon_lab.generator_version")
-    client(tmp_path / "b").set_tag(killed_id, "demon_lab.git_commit", "an-older-commit")
+    client(tmp_path / "b").set_tag(killed_id, "mlflow.source.git.commit", "an-older-commit")
 
     again = cli(*args, cwd=tmp_path / "b")
     assert again.returncode == 0, again.stderr[-2000:]
@@ -189,7 +189,7 @@ def test_a_killed_job_resumes_into_its_run_with_the_uninterrupted_result(tmp_pat
     assert resumed == reference and len(reference) > 10
     tags = client(tmp_path / "b").get_run(run_id).data.tags
     assert all(tags.get(k) == v for k, v in version_tags().items())
-    assert tags["demon_lab.git_commit"] == git_state()["git_commit"]
+    assert tags.get("mlflow.source.git.commit") == _commit_of_the_job_command()
 
     def weights(root: Path) -> dict:
         stages = (root / "cache" / "stages").glob("*/weights.pt")
@@ -269,11 +269,74 @@ def test_sweep_verdict_does_not_count_failed_attempts_of_jobs_that_finished_sinc
     tracker.finish(tracker.start("job", {f"{TAG}run_key": "k0"}, parent_id=parent), "FINISHED")
     tracker.fail(tracker.start("job", {f"{TAG}run_key": "k1"}, parent_id=parent), RuntimeError("bad data"))
     callback = MultirunTracking()
-    callback.tracker, callback.parent, callback.started = tracker, parent, time.time()
+    callback.tracker, callback.parent = tracker, parent
     with caplog.at_level(logging.INFO, logger="demon_lab"):
         callback.on_multirun_end(OmegaConf.create({"hydra": {"sweep": {"dir": str(tmp_path / "sweep")}}}))
     line = caplog.messages[-1]
     assert line.endswith("1 job runs FINISHED, 1 FAILED (1 earlier FAILED attempt(s) of jobs that have since FINISHED)")
+
+
+def test_the_sweep_verdict_counts_the_failed_job_returns_not_error_files(tmp_path, monkeypatch, capsys):
+    """The sweep's failures are the JobReturns that the sweeper hands over FAILED (in the sweep's own
+    process, whatever the launcher): an error.txt left in the sweep folder by an earlier sweep is not
+    one, a FAILED return is, listed by its folder; the parent run ends FAILED and the sweep exits 1."""
+    from hydra.core.utils import JobReturn, JobStatus
+    from omegaconf import OmegaConf
+
+    from demon_lab.app.callbacks import MultirunTracking
+    from demon_lab.pipeline.tracking import TAG, Tracker
+
+    monkeypatch.chdir(tmp_path)
+    sweep = tmp_path / "multirun" / "default"
+    for name in ("seed=0", "seed=1", "seed=2"):
+        (sweep / name).mkdir(parents=True)
+    (sweep / "seed=2" / "error.txt").write_text("Traceback (an earlier sweep's)\n")
+    tracker = Tracker(f"sqlite:///{tmp_path}/mlflow.db", "default", str(tmp_path / "artifacts"))
+    callback = MultirunTracking()
+    callback.tracker, callback.parent = tracker, tracker.start("sweep", {f"{TAG}kind": "sweep"})
+
+    def returned(name: str, status: JobStatus) -> JobReturn:
+        hydra_cfg = OmegaConf.create({"hydra": {"runtime": {"output_dir": str(sweep / name)}}})
+        return JobReturn(overrides=[name], hydra_cfg=hydra_cfg, status=status)
+
+    config = OmegaConf.create({"experiment": "no_study", "hydra": {"sweep": {"dir": "multirun/default"}}})
+    callback.on_jobs_returned(config, [returned("seed=0", JobStatus.COMPLETED), returned("seed=1", JobStatus.FAILED)])
+    callback.on_jobs_returned(config, [returned("seed=2", JobStatus.COMPLETED)])
+    with pytest.raises(SystemExit) as exited:
+        callback.on_multirun_end(config)
+    assert exited.value.code == 1
+    assert capsys.readouterr().err.strip().splitlines() == [
+        "error: 1 job(s) of the sweep failed (each folder has error.txt): multirun/default/seed=1"]
+    parent = tracker.client.get_run(callback.parent)
+    assert parent.info.status == "FAILED" and parent.data.tags[f"{TAG}jobs_failed_now"] == "1"
+
+
+def _commit_of_the_job_command() -> str | None:
+    """The commit MLflow tags a ``python -m demon_lab`` run with: that of the checkout holding the
+    entry point, demon_lab/__main__.py (None outside a checkout)."""
+    from mlflow.utils.git_utils import get_git_commit
+
+    import demon_lab
+
+    return get_git_commit(str(Path(demon_lab.__file__).with_name("__main__.py")))
+
+
+def test_runs_carry_mlflow_source_tags_and_a_resumed_run_is_re_tagged(tmp_path):
+    """Every run gets MLflow's context tags, as mlflow.start_run gives them (the caller's tags win);
+    resuming re-tags the run with the source that finishes it and drops git tags it no longer has."""
+    from demon_lab.pipeline.tracking import TAG, Tracker, source_tags
+
+    tracker = Tracker(f"sqlite:///{tmp_path}/mlflow.db", "default", str(tmp_path / "artifacts"))
+    run_id = tracker.start("job", {f"{TAG}run_key": "k0", "mlflow.user": "someone"})
+    tags = tracker.client.get_run(run_id).data.tags
+    assert tags["mlflow.source.name"] == source_tags()["mlflow.source.name"] and tags["mlflow.user"] == "someone"
+    tracker.set_tags(run_id, {"mlflow.source.git.commit": "an-older-commit", "mlflow.source.git.branch": "old"})
+    tracker.resume(run_id)
+    tags = tracker.client.get_run(run_id).data.tags
+    source = source_tags()
+    assert tags[f"{TAG}resumed"] == "1" and tags["mlflow.user"] == source["mlflow.user"]
+    for key in ("mlflow.source.git.commit", "mlflow.source.git.branch"):
+        assert tags.get(key) == source.get(key)
 
 
 def _pair_folder(tmp: Path, damage: str) -> Path:

@@ -603,8 +603,9 @@ MEDIAN9_NETWORK = ((0, 1), (3, 4), (6, 7), (1, 2), (4, 5), (7, 8), (0, 1), (3, 4
                    (1, 4), (4, 7), (1, 4), (2, 5), (5, 8), (2, 5), (1, 3), (5, 7), (2, 6), (4, 6), (2, 4), (2, 3),
                    (5, 6))
 """A 25-comparator sorting network for 9 values (it sorts all 512 inputs of 0s and 1s, hence every
-input: tests/test_geometry.py): the 3x3 windows sorted by 50 element-wise min/max ops, ~3x faster
-than ``Tensor.sort`` over a window dimension on the cpu scale's batches."""
+input: tests/test_geometry.py): the 3x3 windows sorted by 50 element-wise min/max ops rather than by
+``Tensor.sort`` over a window dimension, the slower of the two on the cpu scale's batches (the speed-up:
+docs/cpu_scale.md, "Time and memory")."""
 
 
 @float32

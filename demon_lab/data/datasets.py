@@ -142,8 +142,9 @@ class SyntheticDataset(PairDataset):
     ``~/.cache/demon_lab``) under a key hashing the preset, size, supersampling and generator
     version, and reused; ``cache_dir=False`` renders every time. Loaded samples are also kept in
     memory, up to ``memory_mb`` per dataset and data-loader worker (default: ``$DEMON_LAB_MEMORY_MB``
-    or 1024; 0 turns it off): served from memory, the training path is about 3x faster than from
-    the disk cache (``python -m demon_lab.bench data``). The memory copy is never modified (every
+    or 1024; 0 turns it off): served from memory, the training path is faster than from the disk
+    cache (``python -m demon_lab.bench data``; the rates: docs/data.md, "The disk cache and the
+    in-memory copy"). The memory copy is never modified (every
     transform returns new tensors) and is not pickled into worker processes. It changes no
     result, so it is not part of any cache or run key.
     """

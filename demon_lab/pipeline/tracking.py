@@ -1,13 +1,13 @@
 """MLflow tracking (the contract: docs/running.md, "Tracking").
 
 One job = one MLflow run in the experiment named after the study (``experiment``), tagged with
-its run key (:func:`demon_lab.pipeline.identity.run_key`), seed, scale, git commit, versions and
-device; params are the flattened config and the resolved config is an artifact. Stage trainings
-are child runs with their loss curves (Lightning's ``MLFlowLogger`` on the child run). Final
-metrics are ``test/<set>/<metric>``, ``test/<set>/it<k>/<metric>`` and
-``test/<set>/refined/<metric>``. A run ends FINISHED only when the job completed and FAILED
-(error recorded) when it raised; a job whose run key already has a FINISHED run is skipped unless
-forced.
+its run key (:func:`demon_lab.pipeline.identity.run_key`), seed, scale, versions and device, and
+with MLflow's own source tags (the git commit among them); params are the flattened config and the
+resolved config is an artifact. Stage trainings are child runs with their loss curves (Lightning's
+``MLFlowLogger`` on the child run). Final metrics are ``test/<set>/<metric>``,
+``test/<set>/it<k>/<metric>`` and ``test/<set>/refined/<metric>``. A run ends FINISHED only when the
+job completed and FAILED (error recorded) when it raised; a job whose run key already has a
+FINISHED run is skipped unless forced.
 
 The default store is ``sqlite:///mlflow.db`` in the working directory with artifacts in
 ``./mlartifacts``; a team points ``tracking.uri`` (or ``MLFLOW_TRACKING_URI``) at a server.
@@ -74,20 +74,32 @@ def flatten(d: Mapping[str, Any], prefix: str = "") -> dict[str, str]:
     return out
 
 
+def source_tags() -> dict[str, str]:
+    """MLflow's own context tags, as ``mlflow.start_run`` sets them (``MlflowClient.create_run`` does
+    not): ``mlflow.user``, ``mlflow.source.name`` and ``mlflow.source.type``, and, when the entry point
+    (``sys.argv[0]``: ``demon_lab/__main__.py`` for ``python -m demon_lab``) lies in a git checkout,
+    ``mlflow.source.git.commit``, ``mlflow.source.git.branch`` and ``mlflow.source.git.repoURL``."""
+    from mlflow.tracking.context.registry import resolve_tags
+
+    return resolve_tags()
+
+
 def git_state() -> dict[str, str]:
+    """``git_dirty``: whether the checkout that ``mlflow.source.git.commit`` names has uncommitted changes
+    to tracked files (``true`` or ``false``; ``unknown`` without that tag), the one git fact MLflow does
+    not tag. The checkout is found as MLflow finds it, from the entry point ``sys.argv[0]``."""
+    import sys
+
+    if "mlflow.source.git.commit" not in source_tags():
+        return {"git_dirty": "unknown"}
     try:
-        here = Path(__file__).resolve().parent
-        tracked = subprocess.run(["git", "ls-files", "--error-unmatch", "__init__.py"], cwd=here,
-                                 capture_output=True, text=True, timeout=5)
-        if tracked.returncode != 0:  # an installed package (inside some other repository, perhaps)
-            return {"git_commit": "unknown", "git_dirty": "unknown"}
-        commit = subprocess.run(["git", "rev-parse", "HEAD"], cwd=here, capture_output=True, text=True,
-                                timeout=5).stdout.strip()
-        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=here,
-                               capture_output=True, text=True, timeout=5).stdout.strip()
-        return {"git_commit": commit or "unknown", "git_dirty": str(bool(dirty)).lower()}
-    except (OSError, subprocess.SubprocessError):
-        return {"git_commit": "unknown", "git_dirty": "unknown"}
+        import git  # GitPython, what MLflow's git tags are read with
+
+        main = Path(sys.argv[0]).resolve()
+        repo = git.Repo(main.parent if main.is_file() else main, search_parent_directories=True)
+        return {"git_dirty": str(repo.is_dirty(untracked_files=False)).lower()}
+    except Exception:
+        return {"git_dirty": "unknown"}
 
 
 class TrackingError(RuntimeError):
@@ -174,12 +186,18 @@ class Tracker:
         return self.client.search_runs([self.experiment_id], filter_string=query, max_results=5000)
 
     def resume(self, run_id: str) -> None:
+        """Count the resumption and re-tag the run with the source (:func:`source_tags`) that finishes it."""
         run = self.client.get_run(run_id)
         count = int(run.data.tags.get(f"{TAG}resumed", "0")) + 1
         self.client.set_tag(run_id, f"{TAG}resumed", str(count))
+        source = source_tags()
+        self.set_tags(run_id, source)
+        for stale in {k for k in run.data.tags if k.startswith("mlflow.source.git.")} - source.keys():
+            self.client.delete_tag(run_id, stale)  # the git tags of a checkout this code is not run from
 
     def start(self, name: str, tags: Mapping[str, str], parent_id: str | None = None) -> str:
-        all_tags = {str(k): str(v) for k, v in tags.items()}
+        """A new run tagged ``tags`` over MLflow's context tags (:func:`source_tags`)."""
+        all_tags = {**source_tags(), **{str(k): str(v) for k, v in tags.items()}}
         if parent_id:
             all_tags["mlflow.parentRunId"] = parent_id
         run = self.client.create_run(self.experiment_id, tags=all_tags, run_name=name)

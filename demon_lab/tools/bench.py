@@ -19,7 +19,6 @@ import datetime as dt
 import os
 import platform
 import re
-import statistics
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -31,25 +30,14 @@ from demon_lab.core import geometry as geo
 from demon_lab.data.throughput import demon_h5_pair_ms, demon_h5_rates, worker_counts, write_demon_layout_file
 
 
-def measure(fn: Callable[[], object], repeats: int = 20, min_time: float = 0.2) -> float:
-    """Median seconds per call over ``repeats`` blocks, each block at least ``min_time`` long."""
-    fn()  # warm-up
-    calls = 1
-    while True:
-        start = time.perf_counter()
-        for _ in range(calls):
-            fn()
-        elapsed = time.perf_counter() - start
-        if elapsed >= min_time / 4 or calls >= 1 << 16:
-            break
-        calls *= 2
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        for _ in range(calls):
-            fn()
-        times.append((time.perf_counter() - start) / calls)
-    return statistics.median(times)
+def measure(fn: Callable[[], object], repeats: int = 20, block_s: float = 0.05) -> float:
+    """Median seconds per call of ``fn``: ``torch.utils.benchmark.Timer.blocked_autorange`` on this
+    process's torch threads, timing for at least ``repeats`` x ``block_s`` seconds (the timer picks
+    the calls per block so that its own overhead is negligible, after a warm-up call)."""
+    from torch.utils import benchmark
+
+    timer = benchmark.Timer("fn()", globals={"fn": fn}, num_threads=torch.get_num_threads())
+    return timer.blocked_autorange(min_run_time=repeats * block_s).median
 
 
 def machine_line() -> str:
@@ -136,8 +124,9 @@ def bench_geometry(repeats: int) -> str:
         "## geometry",
         "",
         f"`python -m demon_lab.bench geometry` — {dt.date.today().isoformat()}, {machine_line()}.",
-        f"Maps at {width}x{height}, batch {batch}, float32, CPU, forward only (median of {repeats} "
-        "blocks). Ratios below 1 mean demon_lab is faster than OpenCV in the same run; "
+        f"Maps at {width}x{height}, batch {batch}, float32, CPU, forward only (median per call, "
+        f"torch.utils.benchmark's blocked_autorange over at least {repeats * 0.05:g} s). Ratios below 1 "
+        "mean demon_lab is faster than OpenCV in the same run; "
         "cv2.remap gets precomputed maps and one call per image.",
         "",
         "| op | ms / call | Mpixel/s | vs OpenCV (same run) |",
@@ -335,7 +324,7 @@ def bench_train(repeats: int) -> str:
         with FlopCounterMode(display=False) as counter:
             step()
         flops = counter.get_total_flops()
-        seconds = measure(fn, max(3, repeats // 4), min_time=0.5)
+        seconds = measure(fn, max(3, repeats // 4), block_s=0.125)
         return 1 / seconds, flops / seconds
 
     def mid_stage(module):
@@ -375,7 +364,7 @@ def bench_train(repeats: int) -> str:
     images = torch.rand(1, 3, 192, 256) - 0.5
     K = torch.tensor([[0.89115971, 1.18821287, 0.5, 0.5]])
     with torch.no_grad():
-        infer = measure(lambda: chain(images, images, K, iterations=3), max(3, repeats // 4), min_time=1.0)
+        infer = measure(lambda: chain(images, images, K, iterations=3), max(3, repeats // 4), block_s=0.25)
     lines = [
         "## train",
         "",
@@ -495,7 +484,9 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m demon_lab.bench", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("sections", nargs="+", choices=[*SECTIONS, "all"])
-    parser.add_argument("--repeats", type=int, default=20, help="timed blocks per measurement")
+    parser.add_argument("--repeats", type=int, default=20,
+                        help="effort: each geometry timing runs at least REPEATS x 50 ms; the data and train "
+                        "sections scale their samples and timings with it")
     parser.add_argument("--out", type=Path, default=Path("reports/bench.md"))
     args = parser.parse_args(argv)
     if args.repeats < 1:

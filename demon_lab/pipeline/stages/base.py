@@ -91,7 +91,8 @@ class StageModule(L.LightningModule):
         optimizer = torch.optim.Adam(
             [{"params": decay, "weight_decay": self.weight_decay}, {"params": no_decay, "weight_decay": 0.0}],
             lr=self.base_lr, betas=(0.9, 0.999), eps=1e-6,
-            foreach=True)  # multi-tensor Adam: the same update, bit for bit on the CPU, ~25 % less time
+            foreach=True)  # multi-tensor Adam: the same update, bit for bit on the CPU, in less time
+        # (docs/cpu_scale.md, "Time and memory": the exact speed-ups)
         scheduler = torch.optim.lr_scheduler.LambdaLR(
             optimizer, lambda step: learning_rate(step, self.steps, self.base_lr, self.lr_schedule,
                                                   self.warmup_steps) / self.base_lr)
@@ -125,8 +126,8 @@ class StageModule(L.LightningModule):
 
     def _logging_step(self) -> bool:
         """Whether Lightning writes this step's values to the logger (every ``log_every_n_steps``,
-        by its own rule): the values of the other steps were collected and dropped, at a few % of
-        a cpu-scale step."""
+        by its own rule): only those steps collect the values, since the others would drop them
+        (the cost: docs/cpu_scale.md, "Time and memory")."""
         trainer = self._trainer
         return trainer is None or bool(trainer._logger_connector.should_update_logs)
 

@@ -22,14 +22,14 @@ class FlowStage(StageModule):
     third; the level-5 losses fade out over it (DeMoN's `training/v2/training.py`; docs/reference.md §4).
 
     ``sig_start`` (a fraction of the stage, default 0 as DeMoN; 1: never) holds the sig weights at 0 until
-    then and starts their ramp there: near zero flow, where an untrained net starts, the sig terms'
-    gradient dominates the flow term's, so a stage far shorter than DeMoN's needs the net to find
-    correspondence before they start (docs/cpu_scale.md, "The flow stages train without their sig
-    terms").
+    then and starts their ramp there: a stage far shorter than DeMoN's lets the net find correspondence
+    with the flow term alone first, since near zero flow, where an untrained net starts, the sig terms'
+    gradient outweighs the flow term's (the ratios: docs/cpu_scale.md, "The flow stages train without
+    their sig terms").
 
     ``level5_fade`` (a fraction of the stage, default DeMoN's 1/3) is how long the level-5 terms take
-    to fade out: an option for probes of a short schedule (docs/cpu_scale.md; fading them over the
-    whole stage changed nothing there).
+    to fade out: an option for probes of a short schedule (its probe: docs/cpu_scale.md, "What limits
+    learning: probes of the recipe").
     """
 
     def __init__(self, *args, net: str = "flow1", sig_start: float = 0.0, level5_fade: float = 1 / 3, **kwargs):
