@@ -127,8 +127,8 @@ def _register_sweeper() -> None:
     try:
         from hydra_plugins.demon_lab_sweeper import DemonLabSweeper
     except ImportError as e:
-        print(f"error: demon_lab's Hydra sweeper is not installed ({e}): install demon_lab again (pip install -e .)",
-              file=sys.stderr)
+        print(f"error: demon_lab's Hydra sweeper is not installed ({e}): install demon_lab again "
+              "(pip install -e . in a checkout, or its wheel)", file=sys.stderr)
         sys.exit(2)
     Plugins.instance().register(DemonLabSweeper)
 

@@ -70,7 +70,11 @@ def test_smoke_pipeline_records_a_finished_run(smoke_run):
     tags = run.data.tags
     assert tags["demon_lab.run_key"] == result["run_key"] and tags["demon_lab.scale"] == "smoke"
     assert tags["demon_lab.seed"] == "0" and "demon_lab.torch" in tags
-    assert tags["mlflow.source.name"] and tags["demon_lab.git_dirty"] in ("true", "false", "unknown")
+    # the tests run from a checkout: the run names its commit, wherever the test process started
+    head = subprocess.run(["git", "rev-parse", "HEAD"], cwd=Path(resources.PACKAGE).parent, capture_output=True,
+                          text=True, check=True).stdout.strip()
+    assert tags["mlflow.source.name"] and tags["mlflow.source.git.commit"] == head
+    assert tags["demon_lab.git_dirty"] in ("true", "false")
     # threads=1 took effect and is not part of what the job computes (same run key without it)
     assert tags["demon_lab.cpu_threads"] == "1" and run.data.params["threads"] == "1"
     assert result["run_key"] == run_key(compose_config(smoke_overrides(tmp)))
@@ -458,6 +462,27 @@ def test_a_motion_prior_keys_the_stages_from_its_net_on_and_shares_those_before(
     assert all(x.key == y.key for x, y in zip(a[:cut], b[:cut], strict=True))
     assert all(x.key != y.key for x, y in zip(a[cut:], b[cut:], strict=True))
     assert getattr(build_chain(prior), key) == value and getattr(build_chain(plain), key) is None
+
+
+def test_the_stages_train_the_chain_with_all_four_priors_and_under_the_depth_motion_oracle(tmp_path):
+    """Every stage kind trains and evaluates with the four priors (flow2's correction of the previous
+    flow in the flow2, dm2, iterative and refine stages), and flow2 trains with its prior under the
+    depth-motion oracle, where it reads ground-truth depth and motion and corrects the bootstrap flow."""
+    from demon_lab.app.job import run
+
+    priors = ["model.flow1_prior=dis", "model.dm1_prior=ransac", "model.flow2_prior=previous",
+              "model.dm2_prior=previous"]
+    threads = torch.get_num_threads()
+    try:
+        chain = run(compose_config(smoke_overrides(tmp_path, "threads=1", *priors)))
+        oracle = run(compose_config(smoke_overrides(tmp_path, "threads=1", "+experiment=gt_depth_motion_oracle",
+                                                    "model.flow2_prior=previous")))
+    finally:
+        torch.set_num_threads(threads)
+    assert chain["status"] == oracle["status"] == "finished"
+    for name in ("synthetic_sun3d", "middlebury"):
+        assert all(math.isfinite(chain["summary"][name][f"it{k}/epe"]) for k in range(4))
+        assert math.isfinite(oracle["summary"][name]["it1/epe"])
 
 
 def test_every_profile_keeps_demons_design_and_the_departures_study_names_each_prior_it_turns_on():

@@ -312,8 +312,8 @@ def test_the_sweep_verdict_counts_the_failed_job_returns_not_error_files(tmp_pat
 
 
 def _commit_of_the_job_command() -> str | None:
-    """The commit MLflow tags a ``python -m demon_lab`` run with: that of the checkout holding the
-    entry point, demon_lab/__main__.py (None outside a checkout)."""
+    """The commit a ``python -m demon_lab`` run is tagged with: that of the checkout holding demon_lab's
+    code (None outside a checkout)."""
     from mlflow.utils.git_utils import get_git_commit
 
     import demon_lab
@@ -330,13 +330,15 @@ def test_runs_carry_mlflow_source_tags_and_a_resumed_run_is_re_tagged(tmp_path):
     run_id = tracker.start("job", {f"{TAG}run_key": "k0", "mlflow.user": "someone"})
     tags = tracker.client.get_run(run_id).data.tags
     assert tags["mlflow.source.name"] == source_tags()["mlflow.source.name"] and tags["mlflow.user"] == "someone"
-    tracker.set_tags(run_id, {"mlflow.source.git.commit": "an-older-commit", "mlflow.source.git.branch": "old"})
+    tracker.set_tags(run_id, {"mlflow.source.git.commit": "an-older-commit", "mlflow.source.git.branch": "old",
+                              f"{TAG}git_commit": "an-older-commit"})  # the tag demon_lab wrote before
     tracker.resume(run_id)
     tags = tracker.client.get_run(run_id).data.tags
     source = source_tags()
     assert tags[f"{TAG}resumed"] == "1" and tags["mlflow.user"] == source["mlflow.user"]
     for key in ("mlflow.source.git.commit", "mlflow.source.git.branch"):
         assert tags.get(key) == source.get(key)
+    assert f"{TAG}git_commit" not in tags
 
 
 def _pair_folder(tmp: Path, damage: str) -> Path:

@@ -39,6 +39,18 @@ RETURNS_HOOK = "on_jobs_returned"
 
 
 class Sweeper(BasicSweeper):
+    def __init__(self, max_batch_size: int | None = None, params: dict[str, str] | None = None) -> None:
+        """BasicSweeper's state, set here rather than by its ``__init__``: Hydra's plugin scan re-imports
+        the basic sweeper's module when it is already loaded, after which that ``__init__``'s
+        ``super(BasicSweeper, self)`` names a different class than this one derives from."""
+        self.overrides: list[list[list[str]]] | None = None
+        self.batch_index = 0
+        self.max_batch_size = max_batch_size
+        self.params = params or {}
+        self.hydra_context = None
+        self.config = None
+        self.launcher = None
+
     @staticmethod
     def batches(params: Any, arguments: Iterable[str], config_loader: Any = None,
                 max_batch_size: int | None = None) -> list[list[list[str]]]:
@@ -64,7 +76,7 @@ class Sweeper(BasicSweeper):
             results = self.launcher.launch(batch, initial_job_idx=first)
             first += len(batch)
             returns.append(results)
-            for callback in getattr(self.hydra_context.callbacks, "callbacks", ()):
+            for callback in self.hydra_context.callbacks.callbacks:
                 hook = getattr(callback, RETURNS_HOOK, None)
                 if hook is not None:
                     hook(config=self.config, job_returns=results)

@@ -21,7 +21,7 @@ of the previous motion instead, starting at none: a pass begins where the last o
 DeMoN's iterative flow net reads the flow of the previous depth and motion (and image 2 warped with
 it) and predicts the flow anew. ``model.flow2_prior=previous`` makes it predict a correction of the
 previous pass's flow instead, starting at none, as ``dm2_prior=previous`` does for the motion: the
-geometric flow stays an input, and a pass cannot lose the flow the pass before it found.
+geometric flow stays an input, and a pass starts from the flow the pass before it found.
 """
 
 from __future__ import annotations

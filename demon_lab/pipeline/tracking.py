@@ -74,32 +74,45 @@ def flatten(d: Mapping[str, Any], prefix: str = "") -> dict[str, str]:
     return out
 
 
+def _checkout():
+    """The git checkout that demon_lab's own code runs from (GitPython's ``Repo``), or None: an
+    installed package, perhaps inside some other repository, has no commit of its own."""
+    try:
+        import git  # GitPython, what MLflow reads its git tags with
+
+        package = Path(__file__).resolve().parents[1]
+        repo = git.Repo(package, search_parent_directories=True)
+        repo.git.ls_files("--error-unmatch", str(package / "__init__.py"))
+        return repo
+    except Exception:
+        return None
+
+
 def source_tags() -> dict[str, str]:
     """MLflow's own context tags, as ``mlflow.start_run`` sets them (``MlflowClient.create_run`` does
-    not): ``mlflow.user``, ``mlflow.source.name`` and ``mlflow.source.type``, and, when the entry point
-    (``sys.argv[0]``: ``demon_lab/__main__.py`` for ``python -m demon_lab``) lies in a git checkout,
-    ``mlflow.source.git.commit``, ``mlflow.source.git.branch`` and ``mlflow.source.git.repoURL``."""
+    not): ``mlflow.user``, ``mlflow.source.name`` and ``mlflow.source.type``, and, when demon_lab runs
+    from a git checkout, ``mlflow.source.git.commit``, ``.branch`` and ``.repoURL`` of that checkout
+    (MLflow would read them from the entry point, ``sys.argv[0]``, which under a cluster launcher is the
+    launcher's own file)."""
     from mlflow.tracking.context.registry import resolve_tags
+    from mlflow.utils.git_utils import get_git_branch, get_git_commit, get_git_repo_url
 
-    return resolve_tags()
+    tags = {k: v for k, v in resolve_tags().items() if not k.startswith("mlflow.source.git.")}
+    repo = _checkout()
+    if repo is not None:
+        where = str(repo.working_dir)
+        for key, read in (("commit", get_git_commit), ("branch", get_git_branch), ("repoURL", get_git_repo_url)):
+            value = read(where)
+            if value:
+                tags[f"mlflow.source.git.{key}"] = value
+    return tags
 
 
 def git_state() -> dict[str, str]:
-    """``git_dirty``: whether the checkout that ``mlflow.source.git.commit`` names has uncommitted changes
-    to tracked files (``true`` or ``false``; ``unknown`` without that tag), the one git fact MLflow does
-    not tag. The checkout is found as MLflow finds it, from the entry point ``sys.argv[0]``."""
-    import sys
-
-    if "mlflow.source.git.commit" not in source_tags():
-        return {"git_dirty": "unknown"}
-    try:
-        import git  # GitPython, what MLflow's git tags are read with
-
-        main = Path(sys.argv[0]).resolve()
-        repo = git.Repo(main.parent if main.is_file() else main, search_parent_directories=True)
-        return {"git_dirty": str(repo.is_dirty(untracked_files=False)).lower()}
-    except Exception:
-        return {"git_dirty": "unknown"}
+    """``git_dirty``: whether the checkout demon_lab runs from has uncommitted changes to tracked files
+    (``true`` or ``false``; ``unknown`` outside a checkout), the one git fact MLflow does not tag."""
+    repo = _checkout()
+    return {"git_dirty": "unknown" if repo is None else str(repo.is_dirty(untracked_files=False)).lower()}
 
 
 class TrackingError(RuntimeError):
@@ -192,8 +205,9 @@ class Tracker:
         self.client.set_tag(run_id, f"{TAG}resumed", str(count))
         source = source_tags()
         self.set_tags(run_id, source)
-        for stale in {k for k in run.data.tags if k.startswith("mlflow.source.git.")} - source.keys():
-            self.client.delete_tag(run_id, stale)  # the git tags of a checkout this code is not run from
+        stale = {k for k in run.data.tags if k.startswith("mlflow.source.git.") or k == f"{TAG}git_commit"}
+        for key in stale - source.keys():  # the git tags of a checkout this code is not run from
+            self.client.delete_tag(run_id, key)
 
     def start(self, name: str, tags: Mapping[str, str], parent_id: str | None = None) -> str:
         """A new run tagged ``tags`` over MLflow's context tags (:func:`source_tags`)."""
