@@ -24,11 +24,11 @@ class ScriptedChain(torch.nn.Module):
         self.gt = losses.ground_truth(batch)
         self.device_marker = torch.nn.Parameter(torch.zeros(()))  # run_chain's device
 
-    def forward(self, image1, image2, intrinsics, iterations, oracle=None, gt=None):
+    def forward(self, image1, image2, intrinsics, iterations, oracle=None, gt=None, refine=True):
         passes = [self.bootstrap()]
         for _ in range(iterations):
             passes.append(self.iterate(passes[-1]))
-        return ChainOutput(passes, self.refine(image1, passes[-1].inv_depth))
+        return ChainOutput(passes, self.refine(image1, passes[-1].inv_depth) if refine else None)
 
     def refine(self, image1, inv_depth2):
         return torch.ones_like(image1[:, :1])

@@ -76,6 +76,11 @@ def test_chain_forward_backward_and_iterations():
         grads = [p.grad for p in getattr(chain, name).parameters()]
         assert all(g is not None and torch.isfinite(g).all() for g in grads), name
     assert len(chain(image1, image2, K, iterations=0).passes) == 1
+    with torch.no_grad():  # without the refinement net: the same passes, nothing refined
+        plain, unrefined = chain(image1, image2, K, iterations=2), chain(image1, image2, K, iterations=2, refine=False)
+    assert unrefined.refined is None
+    for a, b in zip(plain.passes, unrefined.passes, strict=True):
+        assert torch.equal(a.flow, b.flow) and torch.equal(a.inv_depth, b.inv_depth) and torch.equal(a.motion, b.motion)
 
 
 def test_oracles_replace_the_inputs():
@@ -598,14 +603,21 @@ def test_the_bootstrap_depth_motion_net_with_a_motion_prior_starts_at_that_motio
         DeMoN("v1", 0.25, (64, 64), compat="demon_original", dm1_prior="ransac")
 
 
-def test_the_iterative_depth_motion_net_with_a_motion_prior_starts_at_the_previous_motion():
+def _iterative_prior_case(**prior: str):
+    """A chain with an iterative prior, a textured pair at 128x96 (its image 2 at level 2, the
+    intrinsics) and the chain's bootstrap pass on it."""
     torch.manual_seed(0)
-    chain = DeMoN("v1", 0.25, (96, 128), dm2_prior="previous")
+    chain = DeMoN("v1", 0.25, (96, 128), **prior)
     pair = _textured_pair((6, -4))
     image2_2 = torch.nn.functional.avg_pool2d(pair[:, 3:], 4)
     K = torch.tensor([[0.89, 1.19, 0.5, 0.5]])
     with torch.no_grad():
-        p0 = chain.bootstrap(pair, image2_2, K)
+        return chain, pair, image2_2, K, chain.bootstrap(pair, image2_2, K)
+
+
+def test_the_iterative_depth_motion_net_with_a_motion_prior_starts_at_the_previous_motion():
+    chain, pair, image2_2, K, p0 = _iterative_prior_case(dm2_prior="previous")
+    with torch.no_grad():
         p0 = replace(p0, motion=torch.tensor([[0.02, -0.01, 0.03, 0.3, -0.2, 0.9]]))
         p1 = chain.iterate(pair, image2_2, K, p0)
         assert torch.allclose(p1.motion, p0.motion)  # the correction starts at none
@@ -620,13 +632,8 @@ def test_the_iterative_depth_motion_net_with_a_motion_prior_starts_at_the_previo
 
 
 def test_the_iterative_flow_net_with_a_flow_prior_starts_at_the_previous_flow():
-    torch.manual_seed(0)
-    chain = DeMoN("v1", 0.25, (96, 128), flow2_prior="previous")
-    pair = _textured_pair((6, -4))
-    image2_2 = torch.nn.functional.avg_pool2d(pair[:, 3:], 4)
-    K = torch.tensor([[0.89, 1.19, 0.5, 0.5]])
+    chain, pair, image2_2, K, p0 = _iterative_prior_case(flow2_prior="previous")
     with torch.no_grad():
-        p0 = chain.bootstrap(pair, image2_2, K)
         p0 = replace(p0, flow=torch.randn_like(p0.flow) * 0.05, flow5=torch.randn_like(p0.flow5) * 0.05)
         p1 = chain.iterate(pair, image2_2, K, p0)
         assert torch.allclose(p1.flow, p0.flow) and torch.allclose(p1.flow5, p0.flow5)  # no correction yet

@@ -51,7 +51,7 @@ class Prediction:
 @dataclass
 class ChainOutput:
     passes: list[Prediction]  # bootstrap, then one per iteration
-    refined: torch.Tensor  # (B, 1, H, W) inverse depth (v2: (B, 4, H, W) with normals)
+    refined: torch.Tensor | None  # (B, 1, H, W) inverse depth (v2: (B, 4, H, W) with normals); None unrefined
 
 
 def finite(x: torch.Tensor) -> torch.Tensor:
@@ -248,7 +248,9 @@ class DeMoN(nn.Module):
         return self.refine_net(image1, inv_depth2.detach())
 
     def forward(self, image1: torch.Tensor, image2: torch.Tensor, intrinsics: torch.Tensor,
-                iterations: int = 3, oracle: str | None = None, gt: dict | None = None) -> ChainOutput:
+                iterations: int = 3, oracle: str | None = None, gt: dict | None = None,
+                refine: bool = True) -> ChainOutput:
+        """``refine=False`` leaves out the refinement net (``refined`` is None)."""
         if oracle not in ORACLES:
             raise ValueError(f"oracle: expected one of {ORACLES}, got {oracle!r}")
         if iterations < 0:
@@ -264,7 +266,7 @@ class DeMoN(nn.Module):
         passes = [self.bootstrap(pair, image2_2, intrinsics, gt2, oracle)]
         for _ in range(iterations):
             passes.append(self.iterate(pair, image2_2, intrinsics, passes[-1], gt2, oracle))
-        return ChainOutput(passes, self.refine(image1, passes[-1].inv_depth))
+        return ChainOutput(passes, self.refine(image1, passes[-1].inv_depth) if refine else None)
 
 
 def _oracle_confidence(flow: torch.Tensor) -> torch.Tensor:

@@ -30,12 +30,12 @@ log = logging.getLogger(__name__)
 
 
 def run_chain(chain: DeMoN, batches: Iterable[dict[str, Any]], iterations: int, oracle: str | None = None,
-              precision: Any = 32, channels_last: bool = False
+              precision: Any = 32, channels_last: bool = False, refine: bool = True
               ) -> Iterator[tuple[dict[str, Any], dict[str, Any], ChainOutput]]:
     """The chain on each batch of ``batches`` (a loader, or any iterable of collated batches):
     yields the batch as given, the batch on the chain's device (the device of its parameters; its
     image-like tensors channels-last if ``channels_last``) and the chain's output, ``iterations`` passes after
-    the bootstrap and the refined depth. The chain runs without gradients, its nets in
+    the bootstrap and, with ``refine``, the refined depth. The chain runs without gradients, its nets in
     ``precision`` (:mod:`demon_lab.core.execution`; the predictions it returns are float32);
     ``oracle`` feeds it the batch's ground truth (:class:`DeMoN`). The caller's code between the
     batches runs outside that autocast region, with gradients as the caller has them."""
@@ -46,7 +46,7 @@ def run_chain(chain: DeMoN, batches: Iterable[dict[str, Any]], iterations: int, 
         gt = {"inv_depth": inputs["inv_depth"], "motion": inputs["motion"]} if oracle else None
         with torch.no_grad(), execution.autocast(device, precision):
             out = chain(inputs["image1"], inputs["image2"], inputs["intrinsics"], iterations=iterations,
-                        oracle=oracle, gt=gt)
+                        oracle=oracle, gt=gt, refine=refine)
         yield batch, inputs, out
 
 
@@ -67,7 +67,7 @@ def evaluate_dataset(chain: DeMoN, dataset, iterations: int, oracle: str | None 
     rows: list[dict[str, Any]] = []
     kept: list[dict[str, Any]] = []
     loader = DataLoader(subset, batch_size=batch_size, shuffle=False)
-    for batch, _, out in run_chain(chain, loader, iterations, oracle, precision, channels_last):
+    for batch, _, out in run_chain(chain, loader, iterations, oracle, precision, channels_last, refine=refined):
         for i in range(batch["image1"].shape[0]):
             truth = metrics.ground_truth({k: v[i] for k, v in batch.items() if isinstance(v, torch.Tensor)}, dataset)
             for k, p in enumerate(out.passes):

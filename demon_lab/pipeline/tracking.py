@@ -16,6 +16,7 @@ The default store is ``sqlite:///mlflow.db`` in the working directory with artif
 from __future__ import annotations
 
 import contextlib
+import functools
 import logging
 import os
 import re
@@ -74,6 +75,7 @@ def flatten(d: Mapping[str, Any], prefix: str = "") -> dict[str, str]:
     return out
 
 
+@functools.cache
 def _checkout():
     """The git checkout that demon_lab's own code runs from (GitPython's ``Repo``), or None: an
     installed package, perhaps inside some other repository, has no commit of its own."""
@@ -89,6 +91,12 @@ def _checkout():
 
 
 def source_tags() -> dict[str, str]:
+    """A copy of :func:`_source_tags`, read once per process (every run a job starts carries them)."""
+    return dict(_source_tags())
+
+
+@functools.cache
+def _source_tags() -> dict[str, str]:
     """MLflow's own context tags, as ``mlflow.start_run`` sets them (``MlflowClient.create_run`` does
     not): ``mlflow.user``, ``mlflow.source.name`` and ``mlflow.source.type``, and, when demon_lab runs
     from a git checkout, ``mlflow.source.git.commit``, ``.branch`` and ``.repoURL`` of that checkout

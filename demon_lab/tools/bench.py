@@ -29,8 +29,11 @@ import torch
 from demon_lab.core import geometry as geo
 from demon_lab.data.throughput import demon_h5_pair_ms, demon_h5_rates, worker_counts, write_demon_layout_file
 
+BLOCK_S = 0.05
+"""Seconds of timing per unit of ``--repeats`` in :func:`measure` (the geometry section's)."""
 
-def measure(fn: Callable[[], object], repeats: int = 20, block_s: float = 0.05) -> float:
+
+def measure(fn: Callable[[], object], repeats: int = 20, block_s: float = BLOCK_S) -> float:
     """Median seconds per call of ``fn``: ``torch.utils.benchmark.Timer.blocked_autorange`` on this
     process's torch threads, timing for at least ``repeats`` x ``block_s`` seconds (the timer picks
     the calls per block so that its own overhead is negligible, after a warm-up call)."""
@@ -125,7 +128,7 @@ def bench_geometry(repeats: int) -> str:
         "",
         f"`python -m demon_lab.bench geometry` — {dt.date.today().isoformat()}, {machine_line()}.",
         f"Maps at {width}x{height}, batch {batch}, float32, CPU, forward only (median per call, "
-        f"torch.utils.benchmark's blocked_autorange over at least {repeats * 0.05:g} s). Ratios below 1 "
+        f"torch.utils.benchmark's blocked_autorange over at least {repeats * BLOCK_S:g} s). Ratios below 1 "
         "mean demon_lab is faster than OpenCV in the same run; "
         "cv2.remap gets precomputed maps and one call per image.",
         "",

@@ -151,7 +151,7 @@ def run(overrides: Sequence[str], out: str | None = None) -> dict[str, list[dict
         dataset = instantiate(spec)
         loader = torch.utils.data.DataLoader(dataset, batch_size=int(cfg.eval.batch_size))
         per_pass: list[list[dict[str, float]]] = [[] for _ in range(int(cfg.iterations) + 1 + refine)]
-        for _, batch, output in run_chain(chain, loader, int(cfg.iterations)):  # on the CPU, in float32
+        for _, batch, output in run_chain(chain, loader, int(cfg.iterations), refine=refine):  # CPU, float32
             for k, samples in enumerate(diagnose_batch(batch, output, chain.compat, refine)):
                 per_pass[k] += samples
         results[dataset.name] = summarize(per_pass)

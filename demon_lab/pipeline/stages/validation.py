@@ -73,7 +73,8 @@ class StageValidation(L.Callback):
         """The module docstring's metrics on ``dataset``, the chain's nets in ``precision`` (the stage's)."""
         rows: dict[str, list[float]] = {"epe": [], "zero_flow_epe": [], "rot_deg": [], "tran_deg": [], "l1_inv": []}
         loader = torch.utils.data.DataLoader(dataset, batch_size=self.batch_size, shuffle=False)
-        for _, b, out in run_chain(chain, loader, self.iterations, precision=precision, channels_last=channels_last):
+        for _, b, out in run_chain(chain, loader, self.iterations, precision=precision, channels_last=channels_last,
+                                   refine=self.stage == "refine"):
             p = out.passes[-1]
             gt = losses.ground_truth(b)
             error = (p.flow - gt["flow2"]).norm(dim=1)
