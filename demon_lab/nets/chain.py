@@ -203,14 +203,19 @@ class DeMoN(nn.Module):
         return Prediction(flow, conf, flowconf5[:, :2], flowconf5[:, 2:], dm.inv_depth, dm.normals, dm.motion)
 
     def depth_motion1(self, pair: torch.Tensor, image2_2: torch.Tensor, flow: torch.Tensor, conf: torch.Tensor,
-                      intrinsics: torch.Tensor) -> DepthMotion:
+                      intrinsics: torch.Tensor, prior: torch.Tensor | None = None) -> DepthMotion:
         """The bootstrap depth-motion net on a flow and its confidence (with ``dm1_prior``: on the
-        5-point RANSAC motion of that flow too, and the motion it returns is that motion corrected)."""
+        5-point RANSAC motion of that flow too, and the motion it returns is that motion corrected;
+        ``prior`` is that motion where the caller has it, :meth:`prior_motion`)."""
         if not self.dm1_prior:
             return self.dm1(pair, depth_motion_net_inputs(image2_2, flow, conf, None, intrinsics, self.compat))
-        prior = ransac_motion(flow, intrinsics)
+        prior = self.prior_motion(flow, intrinsics) if prior is None else prior
         dm = self.dm1(pair, depth_motion_net_inputs(image2_2, flow, conf, prior, intrinsics, self.compat))
         return replace(dm, motion=dm.motion + prior)
+
+    def prior_motion(self, flow: torch.Tensor, intrinsics: torch.Tensor) -> torch.Tensor | None:
+        """The motion ``dm1`` corrects (``dm1_prior``): 5-point RANSAC on ``flow``; None without the prior."""
+        return ransac_motion(flow, intrinsics) if self.dm1_prior else None
 
     def depth_motion2(self, pair: torch.Tensor, image2_2: torch.Tensor, flow: torch.Tensor, conf: torch.Tensor,
                       prev_motion: torch.Tensor, intrinsics: torch.Tensor) -> DepthMotion:

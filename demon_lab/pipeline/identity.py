@@ -37,11 +37,11 @@ EXECUTION_KEYS = ("channels_last", "compile")
 """Keys of ``model`` that say how the nets run, not what they are (so in :data:`NON_SEMANTIC`)."""
 
 NON_SEMANTIC = ("tracking", "force", "hydra", "cache_dir", "eval.visualize", "eval.point_clouds", "row",
-                "data.num_workers", "threads", *(f"model.{k}" for k in EXECUTION_KEYS))
+                "data.num_workers", "threads", "trainer.reuse_frozen", *(f"model.{k}" for k in EXECUTION_KEYS))
 """Config keys (and whole subtrees) that do not change what a job computes: where it logs and
-caches, how many threads and loader workers it uses, the nets' memory layout and compilation (they
-change floating-point rounding at most, as the thread count does), what it draws, which report row
-it is."""
+caches, how many threads and loader workers it uses, the nets' memory layout and compilation and
+whether a stage reads its frozen nets' outputs from a memo (they change floating-point rounding at
+most, as the thread count does), what it draws, which report row it is."""
 
 
 def versions() -> dict[str, int]:

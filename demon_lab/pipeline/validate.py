@@ -315,6 +315,8 @@ def validate(cfg: DictConfig, here: bool = True) -> None:
     _choice("trainer.accelerator", cfg.trainer.accelerator, ("auto", "cpu", "gpu", "cuda", "mps"))
     _int("trainer.devices", cfg.trainer.devices, 1)
     _int("trainer.num_nodes", cfg.trainer.num_nodes, 1)
+    if not isinstance(cfg.trainer.reuse_frozen, bool):
+        raise ConfigError(f"trainer.reuse_frozen: expected true or false, got {cfg.trainer.reuse_frozen!r}")
     _execution(cfg, here)
     world = cfg.trainer.devices * cfg.trainer.num_nodes
     for name in stages:

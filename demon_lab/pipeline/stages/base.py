@@ -17,7 +17,8 @@ import lightning as L
 import torch
 
 from demon_lab.core import execution, losses
-from demon_lab.nets.chain import DeMoN, downsample_image
+from demon_lab.nets.chain import DeMoN, Prediction, downsample_image
+from demon_lab.pipeline.stages.memo import FrozenMemo
 from demon_lab.pipeline.stages.schedule import LR_SCHEDULES
 
 MULTISTEP_MILESTONES = (0.4, 0.6, 0.8)
@@ -49,11 +50,14 @@ class StageModule(L.LightningModule):
             'depth_motion' for flow stages of the iterative net), or None.
         channels_last: the batch's images in channels-last layout (the chain's nets already are:
             :func:`demon_lab.core.execution.prepare_nets`).
+        reuse_frozen: what the frozen nets compute for a pair is computed once and read from a
+            memo at the pair's next draws (:mod:`demon_lab.pipeline.stages.memo`).
     """
 
     def __init__(self, chain: DeMoN, trained: Sequence[str], weights: Mapping[str, float], steps: int,
                  lr: float, lr_schedule: str = "released", weight_decay: float = 0.0,
-                 oracle: str | None = None, warmup_steps: int = 0, channels_last: bool = False):
+                 oracle: str | None = None, warmup_steps: int = 0, channels_last: bool = False,
+                 reuse_frozen: bool = False):
         super().__init__()
         self.chain = chain
         self.trained = list(trained)
@@ -62,6 +66,7 @@ class StageModule(L.LightningModule):
         self.weight_decay, self.oracle, self.warmup_steps = float(weight_decay), oracle, int(warmup_steps)
         learning_rate(0, self.steps, self.base_lr, lr_schedule)  # validates the schedule name
         self.channels_last = bool(channels_last)
+        self.memo = FrozenMemo() if reuse_frozen else None
         self.freeze_upstream()
         self.last_terms: dict[str, float] = {}
 
@@ -107,6 +112,20 @@ class StageModule(L.LightningModule):
 
     def stage_loss(self, batch: Mapping[str, torch.Tensor], gt: dict) -> tuple[torch.Tensor, dict]:
         raise NotImplementedError
+
+    def frozen(self, compute, *inputs: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        """``compute(*inputs)``, a computation of the frozen nets alone that returns a tuple of batch
+        tensors, without gradient (from the memo with ``reuse_frozen``)."""
+        with torch.no_grad():
+            return self.memo(compute, *inputs) if self.memo is not None else compute(*inputs)
+
+    def bootstrap(self, pair: torch.Tensor, image2_2: torch.Tensor, intrinsics: torch.Tensor) -> Prediction:
+        """The frozen bootstrap pass, without gradient."""
+        return Prediction(*self.frozen(self._bootstrap_fields, pair, image2_2, intrinsics))
+
+    def _bootstrap_fields(self, pair, image2_2, intrinsics) -> tuple[torch.Tensor, ...]:
+        p = self.chain.bootstrap(pair, image2_2, intrinsics)
+        return tuple(getattr(p, f) for f in Prediction.__dataclass_fields__)
 
     def training_step(self, batch: Mapping[str, torch.Tensor], batch_idx: int) -> torch.Tensor:
         gt = losses.ground_truth(batch)

@@ -13,6 +13,7 @@ import torch
 
 from demon_lab.core import losses
 from demon_lab.nets.chain import Prediction, ground_truth_inputs
+from demon_lab.nets.prior import dis_prior
 from demon_lab.pipeline.stages.base import StageModule
 
 
@@ -39,12 +40,12 @@ class FlowStage(StageModule):
     def stage_loss(self, batch, gt):
         pair, image2_2, K = self.inputs(batch)
         if self.net == "flow1":
-            flow5, flow2 = self.chain.flow1(pair)
+            prior2 = self.frozen(lambda p: (dis_prior(p, level=2),), pair)[0] if self.chain.flow1_prior else None
+            flow5, flow2 = self.chain.flow1(pair, prior2=prior2)
         else:
+            oracle = self.oracle == "depth_motion"
+            prev = self.bootstrap(pair, image2_2, K) if not oracle or self.chain.flow2_prior else None
             with torch.no_grad():
-                oracle = self.oracle == "depth_motion"
-                prev = (self.chain.bootstrap(pair, image2_2, K)
-                        if not oracle or self.chain.flow2_prior else None)
                 src = ground_truth_inputs(batch, K) if oracle else prev
             flow5, flow2 = self.chain.flow_net2(pair, image2_2, K, src, prev)
         return losses.flow_loss(flow5, flow2, gt, self.weights, ramp=self.ramp(1 / 3, self.sig_start),
@@ -68,22 +69,35 @@ class DepthMotionStage(StageModule):
 
     def stage_loss(self, batch, gt):
         pair, image2_2, K = self.inputs(batch)
-        with torch.no_grad():
-            given = self.oracle == "flow" or self.global_step < self.gt_flow_warmup * self.steps
-            gt2 = ground_truth_inputs(batch, K) if given else None
-            if self.net == "dm1":
-                flow, conf = _flow_and_conf(self.chain.flow1(pair)[1])
-            else:
-                prev = self.chain.bootstrap(pair, image2_2, K)
-                flow, conf = _flow_and_conf(self.chain.flow_net2(pair, image2_2, K, prev, prev)[1])
-            if gt2 is not None:
-                flow, conf = gt2.flow, torch.isfinite(gt2.flow).to(gt2.flow.dtype)
+        given = self.oracle == "flow" or self.global_step < self.gt_flow_warmup * self.steps
+        prior = None  # dm1's prior motion where the memo has it
+        if self.net == "dm1" and not given:
+            flow, conf, *prior = self.frozen(self._bootstrap_flow, pair, K)
+            prior = prior[0] if prior else None
+        elif self.net == "dm2":
+            *fields, flow, conf = self.frozen(self._iterative_flow, pair, image2_2, K)
+            prev = Prediction(*fields)
+        if given:
+            with torch.no_grad():
+                flow = ground_truth_inputs(batch, K).flow
+                conf = torch.isfinite(flow).to(flow.dtype)
         if self.net == "dm1":
-            dm = self.chain.depth_motion1(pair, image2_2, flow, conf, K)
+            dm = self.chain.depth_motion1(pair, image2_2, flow, conf, K, prior)
         else:  # (the inputs are built without gradient)
             dm = self.chain.depth_motion2(pair, image2_2, flow, conf, prev.motion, K)
         ramp = self.ramp(2.0 if self.net == "dm1" else 1.0)
         return losses.depth_motion_loss(dm.inv_depth, dm.normals, dm.motion, gt, self.weights, ramp=ramp)
+
+    def _bootstrap_flow(self, pair, K):
+        """``flow1``'s flow and confidence, and with ``dm1_prior`` the RANSAC motion of that flow."""
+        flow, conf = _flow_and_conf(self.chain.flow1(pair)[1])
+        prior = self.chain.prior_motion(flow, K)
+        return (flow, conf) if prior is None else (flow, conf, prior)
+
+    def _iterative_flow(self, pair, image2_2, K):
+        """The bootstrap pass's fields, then the iterative flow net's flow and confidence on it."""
+        prev = self.chain.bootstrap(pair, image2_2, K)
+        return (*_fields(prev), *_flow_and_conf(self.chain.flow_net2(pair, image2_2, K, prev, prev)[1]))
 
 
 def _flow_and_conf(flowconf: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -112,8 +126,7 @@ class IterativeStage(StageModule):
 
     def stage_loss(self, batch, gt):
         pair, image2_2, K = self.inputs(batch)
-        with torch.no_grad():
-            prev = self.chain.bootstrap(pair, image2_2, K)
+        prev = self.bootstrap(pair, image2_2, K)
         samples = [({k: v[i] for k, v in batch.items() if isinstance(v, torch.Tensor)},
                     _index(prev, i)) for i in range(pair.shape[0])]
         combined = samples + self.queue[: self.queue_size]
@@ -152,6 +165,10 @@ class IterativeStage(StageModule):
             self.queue = [({k: v[i] for k, v in saved["samples"].items()}, _index(preds, i)) for i in range(n)]
 
 
+def _fields(p: Prediction) -> tuple[torch.Tensor, ...]:
+    return tuple(getattr(p, f) for f in Prediction.__dataclass_fields__)
+
+
 def _index(p: Prediction, i: int) -> Prediction:
     return Prediction(*(getattr(p, f)[i] for f in Prediction.__dataclass_fields__))
 
@@ -170,12 +187,16 @@ class RefineStage(StageModule):
 
     def stage_loss(self, batch: Mapping[str, torch.Tensor], gt):
         pair, image2_2, K = self.inputs(batch)
-        with torch.no_grad():
-            p = self.chain.bootstrap(pair, image2_2, K)
-            for _ in range(self.iterations):
-                p = self.chain.iterate(pair, image2_2, K, p)
-        refined = self.chain.refine(batch["image1"], p.inv_depth)
+        inv_depth, = self.frozen(self._passes, pair, image2_2, K)
+        refined = self.chain.refine(batch["image1"], inv_depth)
         return losses.refine_loss(refined, gt, self.weights, ramp=self.ramp(1.0))
+
+    def _passes(self, pair, image2_2, K):
+        """The inverse depth of the frozen chain's last pass."""
+        p = self.chain.bootstrap(pair, image2_2, K)
+        for _ in range(self.iterations):
+            p = self.chain.iterate(pair, image2_2, K, p)
+        return (p.inv_depth,)
 
 
 STAGE_KINDS = {"flow": FlowStage, "depth_motion": DepthMotionStage, "iterative": IterativeStage,

@@ -81,7 +81,8 @@ def train_stage(cfg: DictConfig, chain: DeMoN, stage: StageDir, logger: L.pytorc
     if kind == "depth_motion" and spec.get("gt_flow_warmup") is not None:
         kwargs.update(gt_flow_warmup=float(spec.gt_flow_warmup))
     module = STAGE_KINDS[kind](chain, weights=OmegaConf.to_container(cfg.loss, resolve=True),
-                               channels_last=bool(cfg.model.get("channels_last", False)), **kwargs)
+                               channels_last=bool(cfg.model.get("channels_last", False)),
+                               reuse_frozen=bool(cfg.trainer.reuse_frozen), **kwargs)
     batch = int(spec.get("batch_size") or cfg.data.batch_size)
     resume = stage.last_checkpoint if stage.last_checkpoint.is_file() else None
     if resume is None and spec.get("restarts") is not None:
@@ -121,6 +122,8 @@ def train_stage(cfg: DictConfig, chain: DeMoN, stage: StageDir, logger: L.pytorc
     steps_done = int(spec.steps) - start_step
     figures = {"seconds": seconds, "steps_per_second": steps_done / max(seconds, 1e-9), "resumed_from_step": start_step,
                **{f"final/{k}": v for k, v in module.last_terms.items()}}
+    if module.memo is not None and module.memo.hits + module.memo.misses:
+        figures["reuse_frozen_hits"] = module.memo.hits / (module.memo.hits + module.memo.misses)
     # The trainer and the module refer to each other: collect them (and the datasets' in-memory
     # samples) now rather than let every stage of a job keep its own copy until the next GC pass.
     del trainer, module, datamodule
