@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import inspect
 import math
 import os
 import signal
@@ -286,6 +287,11 @@ def test_a_job_that_raises_leaves_its_run_failed(tmp_path):
     (["+schedule.stages.dm1.layers_first=0.5"], "schedule.stages.dm1.layers_first: only the bootstrap flow net's"),
     (["+schedule.stages.flow1.layers_first=0"], "schedule.stages.flow1.layers_first: expected a fraction of the stage"),
     (["+schedule.stages.flow1.restarts=[3,0]"], "schedule.stages.flow1.restarts: expected [starts, steps]"),
+    (["+schedule.stages.dm1.sig_start=0.5"],
+     "schedule.stages.dm1.sig_start: not an option of a depth_motion stage (its options: kind, steps, lr, "
+     "warmup_steps, batch_size, oracle, easy_first, net, gt_flow_warmup)"),
+    (["+schedule.stages.refine.queue_size=4"], "schedule.stages.refine.queue_size: not an option of a refine stage"),
+    (["trainer.reuse_frozen=sometimes"], "trainer.reuse_frozen: expected true or false, got 'sometimes'"),
     (["baseline.size=[16,16]"], "baseline.size: expected native or [H, W] with sides >= 32 pixels"),
     (["baseline.size=full"], "baseline.size: expected native or [H, W] with sides >= 32 pixels, got full"),
     (["data.real_pair=/does/not/exist"], "data.test[3].path (data.real_pair): /does/not/exist: no such file"),
@@ -370,11 +376,16 @@ def test_checking_a_configuration_imports_neither_lightning_nor_mlflow():
 
 
 def test_the_stage_kinds_and_rate_schedules_a_config_may_name_are_the_implemented_ones():
+    from demon_lab.pipeline.schema import STAGE_KIND_NAMES, STAGE_SPECS
     from demon_lab.pipeline.stages.base import learning_rate
     from demon_lab.pipeline.stages.modules import STAGE_KINDS
-    from demon_lab.pipeline.stages.schedule import LR_SCHEDULES, STAGE_KIND_NAMES
+    from demon_lab.pipeline.stages.schedule import LR_SCHEDULES
 
     assert STAGE_KIND_NAMES == tuple(STAGE_KINDS)
+    for kind, spec in STAGE_SPECS.items():  # each spec's options are its module's arguments
+        options = spec(name=kind, steps=10, lr=1e-3).module_options()
+        assert set(options) <= set(inspect.signature(STAGE_KINDS[kind]).parameters) | {"steps", "lr", "warmup_steps",
+                                                                                       "oracle"}, kind
     for schedule in LR_SCHEDULES:
         assert learning_rate(500, 1000, 1e-3, schedule) > 0
     with pytest.raises(ValueError, match=r"schedule\.lr_schedule: expected one of"):
@@ -488,7 +499,8 @@ def test_the_stages_train_the_chain_with_all_four_priors_and_under_the_depth_mot
 def test_every_profile_keeps_demons_design_and_the_departures_study_names_each_prior_it_turns_on():
     """No profile takes a prior (the four priors are the cpu_departures study's candidate profile);
     each row of that study turns on exactly the priors its name says, and row profile all four."""
-    from demon_lab.pipeline.stages.schedule import PRIOR_KEYS, build_chain
+    from demon_lab.pipeline.schema import PRIOR_KEYS
+    from demon_lab.pipeline.stages.schedule import build_chain
 
     spec = yaml.safe_load((resources.STUDIES / "cpu_departures.yaml").read_text())
     four = {"flow1_prior": "dis", "dm1_prior": "ransac", "flow2_prior": "previous", "dm2_prior": "previous"}
@@ -531,8 +543,14 @@ def test_train_stage_hands_the_probe_options_to_their_stages(tmp_path, monkeypat
         cfg = compose("config", ["scale=smoke", f"cache_dir={tmp_path}", "+schedule.stages.flow1.level5_fade=0.75",
                                  "+schedule.stages.dm1.gt_flow_warmup=0.4"])
         plain = compose("config", ["scale=smoke", f"cache_dir={tmp_path}"])
+    from demon_lab.pipeline.stages.modules import DepthMotionStage, FlowStage
+
+    default = lambda module, key: inspect.signature(module).parameters[key].default  # noqa: E731
+    demon = {"flow": {"level5_fade": default(FlowStage, "level5_fade")},
+             "depth_motion": {"gt_flow_warmup": default(DepthMotionStage, "gt_flow_warmup")}}
+    assert demon == {"flow": {"level5_fade": 1 / 3}, "depth_motion": {"gt_flow_warmup": 0.0}}
     for config, expect in ((cfg, {"flow": {"level5_fade": 0.75}, "depth_motion": {"gt_flow_warmup": 0.4}}),
-                           (plain, {"flow": {}, "depth_motion": {}})):
+                           (plain, demon)):
         chain = build_chain(config)
         for stage in stage_dirs(config)[:2]:  # flow1, dm1
             with pytest.raises(Built):

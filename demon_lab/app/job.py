@@ -68,7 +68,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     for note in drop_missing_sources(cfg):
         log.info("%s", note)
     validate(cfg)
-    if cfg.get("threads") is not None:
+    if cfg.threads is not None:
         from demon_lab.core.execution import set_threads
 
         set_threads(int(cfg.threads))
@@ -157,7 +157,7 @@ def _train_and_evaluate(cfg: DictConfig, tracker, run_id: str) -> dict[str, Any]
     tracker.log_metrics(run_id, {f"stage/{name}/{k}": v for name, fig in figures.items() for k, v in fig.items()})
 
     refined = cfg.method == "demon" and (not cfg.train or "refine" in [s.name for s in stages])
-    if refined and not cfg.train and cfg.model.get("weights"):  # the refinement net only if the file has it
+    if refined and not cfg.train and cfg.model.weights:  # the refinement net only if the file has it
         from demon_lab.pipeline.weights import read_nets
 
         refined = "refine_net" in read_nets(cfg.model.weights, mmap=True)

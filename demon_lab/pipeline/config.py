@@ -24,13 +24,25 @@ def _times(value: Any, factor: Any) -> int:
 def register_resolvers() -> None:
     """``${bundled:NAME}`` -> the absolute path of a real sample that ships inside the package
     (:data:`demon_lab.resources.DATA`), whatever the working directory; ``${times:N,K}`` -> N x K
-    for integers (nothing else is evaluated)."""
+    for integers (nothing else is evaluated); ``${non_semantic_overrides:}`` -> the job's
+    overrides that change no result."""
     from omegaconf import OmegaConf
 
     if not OmegaConf.has_resolver("bundled"):
         OmegaConf.register_new_resolver("bundled", lambda name="": str(DATA / name))
     if not OmegaConf.has_resolver("times"):
         OmegaConf.register_new_resolver("times", _times)
+    if not OmegaConf.has_resolver("non_semantic_overrides"):
+        OmegaConf.register_new_resolver("non_semantic_overrides", _non_semantic_overrides)
+
+
+def _non_semantic_overrides(*, _root_: Any) -> list[str]:
+    """The keys (or groups) of the job's overrides that do not change what it computes
+    (:func:`demon_lab.pipeline.identity.is_semantic`): Hydra's ``override_dirname`` leaves them out."""
+    from demon_lab.pipeline.identity import is_semantic
+
+    keys = [line.split("=", 1)[0].lstrip("+~") for line in _root_.hydra.overrides.task]
+    return [key for key in keys if not is_semantic(key)]
 
 
 class ConfigError(ValueError):
@@ -47,7 +59,7 @@ def drop_missing_sources(cfg: Any) -> list[str]:
     from omegaconf import OmegaConf, open_dict
 
     notes = []
-    splits = [("test", lambda e: e)] + ([("train", lambda e: e.dataset)] if cfg.get("train", True) else [])
+    splits = [("test", lambda e: e)] + ([("train", lambda e: e.dataset)] if cfg.train else [])
     for split, source_of in splits:
         entries = cfg.data.get(split)
         if not entries or not any(source_of(e).get("optional", False) for e in entries):

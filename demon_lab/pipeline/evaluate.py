@@ -138,8 +138,8 @@ def evaluate_test_sets(cfg, chain: DeMoN | None, refined: bool) -> list[TestSetR
         if cfg.method == "demon":
             rows, kept = evaluate_dataset(chain, dataset, int(cfg.iterations), cfg.oracle, int(cfg.eval.batch_size),
                                           cfg.eval.max_samples, keep=keep, refined=refined, histogram=histogram,
-                                          precision=cfg.get("precision", 32),
-                                          channels_last=bool(cfg.model.get("channels_last", False)))
+                                          precision=cfg.precision,
+                                          channels_last=cfg.model.channels_last)
             summary = summarize(rows, int(cfg.iterations))
         else:
             rows, kept = _evaluate_baseline(cfg, entry, dataset, chain, keep, histogram)

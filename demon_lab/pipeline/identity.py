@@ -15,8 +15,8 @@ A rendered synthetic data set's cache folder has a key of its own, from the gene
 (:func:`demon_lab.data.synthetic.render_key`), so that the data layer needs nothing above it.
 
 :data:`NON_SEMANTIC` also decides the job's output folder: ``hydra.job.config.override_dirname
-.exclude_keys`` in ``conf/config.yaml`` lists exactly the non-semantic keys a user can override
-(``tests/test_identity.py`` checks that the two agree).
+.exclude_keys`` in ``conf/config.yaml`` is the job's overrides that it holds
+(``${non_semantic_overrides:}``, :mod:`demon_lab.pipeline.config`).
 """
 
 from __future__ import annotations

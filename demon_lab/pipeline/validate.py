@@ -5,7 +5,8 @@ would read that is not there, is one line naming the key and what is allowed (ra
 Written out rather than as Hydra structured configs: those check a value's type, but not its range
 (a positive step count, an odd window), rules across keys (``iterations > 0`` needs the iterative
 stages; a batch must split over the DDP processes) or the existence of files, and their errors
-span several lines with the config's full key path and object type.
+span several lines with the config's full key path and object type. What the checked config holds
+is typed in :mod:`demon_lab.pipeline.schema`, which the code reads it through.
 """
 
 from __future__ import annotations
@@ -19,7 +20,8 @@ from demon_lab.baselines.methods import METHODS as BASELINES
 from demon_lab.core.losses import check_weights
 from demon_lab.nets.chain import ORACLES
 from demon_lab.pipeline.config import ConfigError
-from demon_lab.pipeline.stages.schedule import LR_SCHEDULES, STAGE_KIND_NAMES
+from demon_lab.pipeline.schema import PRIOR_KEYS, STAGE_KIND_NAMES, ModelSpec, stage_spec
+from demon_lab.pipeline.stages.schedule import LR_SCHEDULES
 
 STAGE_ORACLES = {"flow": (None, "depth_motion"), "depth_motion": (None, "flow"), "iterative": (None,),
                  "refine": (None,)}
@@ -89,32 +91,30 @@ def _model_files(cfg: DictConfig) -> None:
     """``model.compat`` and ``model.weights``: the file exists and fits the chain the config builds."""
     from demon_lab.nets.chain import COMPATS
 
-    _choice("model.compat", cfg.model.get("compat"), COMPATS)
-    if cfg.model.get("compat") == "demon_original" and cfg.model.variant != "v1":
+    model = ModelSpec.of(cfg.model)
+    _choice("model.compat", model.compat, COMPATS)
+    if model.compat == "demon_original" and model.variant != "v1":
         raise ConfigError("model.compat: demon_original reproduces DeMoN's released v1 graph; it needs "
-                          f"model.variant=v1, got {cfg.model.variant}")
-    from demon_lab.pipeline.stages.schedule import correlation_of
-
-    if cfg.model.get("correlation") is not None:
+                          f"model.variant=v1, got {model.variant}")
+    if model.correlation is not None:
         from demon_lab.nets.blocks import check_correlation
 
         try:
-            check_correlation(correlation_of(cfg.model))
+            check_correlation(model.correlation)
         except ValueError as e:
             raise ConfigError(f"model.{e}") from None
-        if cfg.model.get("compat") == "demon_original":
+        if model.compat == "demon_original":
             raise ConfigError("model.correlation: compat=demon_original reproduces DeMoN's released graph, which has "
                               "no correlation front; leave model.correlation null")
     from demon_lab.nets.prior import CHOICES
-    from demon_lab.pipeline.stages.schedule import PRIOR_KEYS, priors_of
 
     for key in PRIOR_KEYS:
-        _choice(f"model.{key}", cfg.model.get(key), CHOICES[key])
+        _choice(f"model.{key}", getattr(model, key), CHOICES[key])
     for key in PRIOR_KEYS:
-        if cfg.model.get(key) is not None and cfg.model.get("compat") == "demon_original":
+        if getattr(model, key) is not None and model.compat == "demon_original":
             raise ConfigError(f"model.{key}: compat=demon_original reproduces DeMoN's released graph, whose "
                               f"nets have no priors; leave model.{key} null")
-    weights = cfg.model.get("weights")
+    weights = model.weights
     if not weights:
         return
     if cfg.method not in CHAIN_METHODS:
@@ -123,8 +123,7 @@ def _model_files(cfg: DictConfig) -> None:
         raise ConfigError(f"model.weights: {weights}: no such file")
     from demon_lab.pipeline.weights import check_fits
 
-    why = check_fits(weights, cfg.model.variant, float(cfg.model.width), tuple(cfg.data.size),
-                     correlation_of(cfg.model), **priors_of(cfg.model))
+    why = check_fits(weights, model.variant, model.width, tuple(cfg.data.size), model.correlation, **model.priors())
     if why:
         raise ConfigError(f"model.weights: {why}")
     if not cfg.train:  # evaluated as they are: the passes run must not fall back on untrained nets
@@ -139,7 +138,7 @@ def _model_files(cfg: DictConfig) -> None:
 
 def _flow1_only(name: str, spec: DictConfig, option: str, what: str) -> None:
     """A stage option that only the bootstrap flow net's stage (flow1) takes."""
-    if spec.kind != "flow" or spec.get("net", "flow1") != "flow1":
+    if spec.kind != "flow" or spec.get("net") not in (None, "flow1"):
         raise ConfigError(f"schedule.stages.{name}.{option}: only the bootstrap flow net's stage (flow1) {what} "
                           f"(this stage: {spec.kind}, {spec.get('net')})")
 
@@ -151,10 +150,10 @@ def _kept_nets(cfg: DictConfig, stage: str, before: list[str]) -> None:
     from demon_lab.pipeline.weights import read_nets
 
     earlier = {n for s in before if cfg.schedule.stages[s].steps > 0 for n in TRAINED_NETS[s]}
-    held = set(read_nets(cfg.model.weights, mmap=True)) if cfg.model.get("weights") else set()
+    held = set(read_nets(cfg.model.weights, mmap=True)) if cfg.model.weights else set()
     lacking = [n for n in TRAINED_NETS[stage] if n not in earlier | held]
     if lacking:
-        source = f"{cfg.model.weights} has no" if cfg.model.get("weights") else "model.weights is not set for"
+        source = f"{cfg.model.weights} has no" if cfg.model.weights else "model.weights is not set for"
         raise ConfigError(f"schedule.stages.{stage}.steps: 0 trains nothing and keeps the stage's nets as they "
                           f"are, but no earlier stage trains {', '.join(lacking)} and {source} "
                           f"{', '.join(lacking)}")
@@ -192,17 +191,17 @@ def _execution(cfg: DictConfig, here: bool = True) -> None:
     from demon_lab.core import execution
 
     try:
-        execution.normalize_precision(cfg.get("precision", 32))
+        execution.normalize_precision(cfg.precision)
     except ValueError as e:
         raise ConfigError(str(e)) from None
     for key in ("channels_last", "compile"):
-        if not isinstance(cfg.model.get(key, False), bool):
+        if not isinstance(cfg.model[key], bool):
             raise ConfigError(f"model.{key}: expected true or false, got {cfg.model[key]!r}")
     if cfg.method not in CHAIN_METHODS or not here:
         return
     device = execution.resolve_accelerator(cfg.trainer.accelerator)
-    problem = execution.precision_problem(cfg.get("precision", 32), device)
-    if problem is None and cfg.model.get("compile", False):
+    problem = execution.precision_problem(cfg.precision, device)
+    if problem is None and cfg.model.compile:
         problem = execution.compile_problem(device)
     if problem is not None:
         raise ConfigError(problem)
@@ -218,7 +217,7 @@ def validate(cfg: DictConfig, here: bool = True) -> None:
         raise ConfigError(str(e).splitlines()[0]) from None
     _int("iterations", cfg.iterations, 0)
     _int("seed", cfg.seed, 0)
-    if cfg.get("threads") is not None:
+    if cfg.threads is not None:
         _int("threads", cfg.threads, 1)
     _choice("oracle", cfg.oracle, ORACLES)
     _choice("method", cfg.method, METHODS)
@@ -256,9 +255,10 @@ def validate(cfg: DictConfig, here: bool = True) -> None:
             _kept_nets(cfg, name, trained[: trained.index(name)])
         _positive(f"schedule.stages.{name}.lr", spec.lr)
         _choice(f"schedule.stages.{name}.oracle", spec.get("oracle"), STAGE_ORACLES[spec.kind])
-        _int(f"schedule.stages.{name}.warmup_steps", spec.get("warmup_steps", 0), 0)
-        if spec.kind in ("flow", "iterative"):
-            start = spec.get("sig_start", 0.0)
+        if "warmup_steps" in spec:
+            _int(f"schedule.stages.{name}.warmup_steps", spec.warmup_steps, 0)
+        if spec.kind in ("flow", "iterative") and "sig_start" in spec:
+            start = spec.sig_start
             if isinstance(start, bool) or not isinstance(start, (int, float)) or not 0 <= start <= 1:
                 raise ConfigError(f"schedule.stages.{name}.sig_start: expected a fraction of the stage in "
                                   f"[0, 1] (1: never), got {start!r}")
@@ -305,6 +305,7 @@ def validate(cfg: DictConfig, here: bool = True) -> None:
             if cfg.trainer.devices * cfg.trainer.num_nodes > 1:
                 raise ConfigError(f"schedule.stages.{name}.restarts: screening restarts runs in one process; "
                                   f"train with trainer.devices=1 trainer.num_nodes=1")
+        stage_spec(cfg, name)  # an option the stage's kind does not take
     try:
         check_weights(OmegaConf.to_container(cfg.loss, resolve=True))
     except ValueError as e:

@@ -124,12 +124,12 @@ def run(overrides: Sequence[str], out: str | None = None) -> dict[str, list[dict
         cfg = compose("config", overrides=list(overrides))
     drop_missing_sources(cfg)
     validate(cfg)
-    if cfg.get("threads") is not None:
+    if cfg.threads is not None:
         from demon_lab.core.execution import set_threads
 
         set_threads(int(cfg.threads))
     chain = build_chain(cfg)  # with model.weights loaded, if given
-    if cfg.model.get("weights") and not cfg.train:  # the given weights as they are (DeMoN's released ones)
+    if cfg.model.weights and not cfg.train:  # the given weights as they are (DeMoN's released ones)
         from demon_lab.pipeline.weights import read_nets
 
         refine = "refine_net" in read_nets(cfg.model.weights, mmap=True)

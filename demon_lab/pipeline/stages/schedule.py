@@ -13,15 +13,11 @@ from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 
-from demon_lab.core import losses
 from demon_lab.core.execution import normalize_precision, prepare_nets
 from demon_lab.nets.chain import DeMoN
 from demon_lab.pipeline.identity import model_identity, stage_key
+from demon_lab.pipeline.schema import ModelSpec, stage_spec
 from demon_lab.pipeline.stages.cache import CheckpointError, StageDir
-
-STAGE_KIND_NAMES = ("flow", "depth_motion", "iterative", "refine")
-"""The kinds of training stage (``schedule.stages.NAME.kind``): the keys of
-:data:`demon_lab.pipeline.stages.modules.STAGE_KINDS`, named here so that checking a config needs no Lightning."""
 
 LR_SCHEDULES = ("released", "supplementary")
 """``schedule.lr_schedule``: :func:`demon_lab.pipeline.stages.base.learning_rate` implements both."""
@@ -40,25 +36,24 @@ def scheduled_stages(cfg: DictConfig) -> list[str]:
 def describe_stage(cfg: DictConfig, name: str, upstream: dict[str, str]) -> dict[str, Any]:
     """Everything that determines a stage's result (what its cache key hashes)."""
     plain = lambda node: OmegaConf.to_container(node, resolve=True)  # noqa: E731
-    spec = cfg.schedule.stages[name]
+    spec = stage_spec(cfg, name)
     return {
         "stage": name,
-        "stage_config": plain(spec),
+        "stage_config": plain(cfg.schedule.stages[name]),
         "optimisation": {k: cfg.schedule[k] for k in ("lr_schedule", "weight_decay", "grad_clip")},
-        "batch_size": spec.get("batch_size") or cfg.data.batch_size,
+        "batch_size": spec.batch_size or cfg.data.batch_size,
         "model": {**_stage_model(model_identity(plain(cfg.model)), name, list(cfg.schedule.stages)),
                   "size": list(cfg.data.size)},  # weights by content
         # Only the weights this stage's loss reads: ablations that change another stage's terms
         # (no_normals for the flow stages, say, or no_sig for a flow stage without sig terms)
         # share this stage.
-        "loss": {k: float(cfg.loss[k]) for k in losses.stage_weight_keys(
-            spec.kind, float(spec.get("sig_start", 0.0)))},
+        "loss": {k: float(cfg.loss[k]) for k in spec.weight_keys()},
         "train_data": plain(cfg.data.train),
         "seed": cfg.seed,
         "upstream": dict(upstream),
         # the nets' precision when it is not float32 and the stage trains (left out at 32: the keys from
         # before it existed hold)
-        **({"precision": precision} if (precision := normalize_precision(cfg.get("precision", 32))) != "32-true"
+        **({"precision": precision} if (precision := normalize_precision(cfg.precision)) != "32-true"
            and int(spec.steps) > 0 else {}),
     }
 
@@ -89,33 +84,16 @@ def stage_dirs(cfg: DictConfig) -> list[StageDir]:
 
 
 def build_chain(cfg: DictConfig) -> DeMoN:
-    """The chain of the config's variant, width, input size and compat mode: untrained, or with
-    ``model.weights`` loaded (:func:`demon_lab.pipeline.weights.load_weights`); its nets in channels-last
-    layout and compiled when ``model.channels_last`` / ``model.compile`` ask for it."""
-    chain = DeMoN(cfg.model.variant, float(cfg.model.width), tuple(cfg.data.size), cfg.model.get("compat"),
-                  correlation_of(cfg.model), **priors_of(cfg.model))
-    if cfg.model.get("weights"):
+    """The chain of the config's model options and input size: untrained, or with ``model.weights``
+    loaded (:func:`demon_lab.pipeline.weights.load_weights`); its nets in channels-last layout and
+    compiled when ``model.channels_last`` / ``model.compile`` ask for it."""
+    model = ModelSpec.of(cfg.model)
+    chain = DeMoN(model.variant, model.width, tuple(cfg.data.size), model.compat, model.correlation, **model.priors())
+    if model.weights:
         from demon_lab.pipeline.weights import load_weights
 
-        load_weights(chain, cfg.model.weights)
-    return prepare_nets(chain, bool(cfg.model.get("channels_last", False)), bool(cfg.model.get("compile", False)))
-
-
-PRIOR_KEYS = ("flow1_prior", "dm1_prior", "flow2_prior", "dm2_prior")
-"""The model options that give a net a prior (:mod:`demon_lab.nets.prior`)."""
-
-
-def priors_of(model: DictConfig) -> dict[str, str | None]:
-    """``model``'s prior options as the chain takes them (keyword arguments)."""
-    return {k: model.get(k) for k in PRIOR_KEYS}
-
-
-def correlation_of(model: DictConfig) -> tuple[int, int] | None:
-    """``model.correlation`` as the chain takes it: ``(max_displacement, stride)`` or None."""
-    spec = model.get("correlation")
-    if OmegaConf.is_config(spec):
-        spec = OmegaConf.to_container(spec)
-    return tuple(spec) if isinstance(spec, list | tuple) else spec
+        load_weights(chain, model.weights)
+    return prepare_nets(chain, model.channels_last, model.compile)
 
 
 def load_stage(chain: DeMoN, stage: StageDir) -> None:

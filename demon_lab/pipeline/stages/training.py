@@ -26,6 +26,7 @@ from demon_lab.core.execution import (
     world_size,
 )
 from demon_lab.nets.chain import DeMoN
+from demon_lab.pipeline.schema import FlowStageSpec, stage_spec
 from demon_lab.pipeline.stages.cache import StageDir, atomic_checkpoint_io, load_checkpoint
 from demon_lab.pipeline.stages.modules import STAGE_KINDS
 from demon_lab.pipeline.stages.schedule import TRAINED_NETS, build_chain, load_stage, stage_dirs
@@ -58,55 +59,42 @@ def build_datamodule(cfg: DictConfig, batch_size: int, samples: int, skip: int =
 def train_stage(cfg: DictConfig, chain: DeMoN, stage: StageDir, logger: L.pytorch.loggers.Logger | None,
                 progress: bool = True) -> dict[str, float]:
     """Train one stage into ``stage`` (resuming from its last checkpoint); returns figures."""
-    spec = cfg.schedule.stages[stage.name]
-    if int(spec.steps) == 0:  # trains nothing: the nets as they are (from model.weights or an earlier stage)
+    spec = stage_spec(cfg, stage.name)
+    if spec.steps == 0:  # trains nothing: the nets as they are (from model.weights or an earlier stage)
         if global_rank(cfg) == 0:
             stage.save({net: plain_state(getattr(chain, net)) for net in TRAINED_NETS[stage.name]})
         log.info("stage %s: 0 steps: keeps %s as they are (from model.weights or an earlier stage)", stage.name,
                  ", ".join(TRAINED_NETS[stage.name]))
         return {"seconds": 0.0, "steps_per_second": 0.0, "resumed_from_step": 0}
-    kind = spec.kind
-    kwargs = dict(steps=int(spec.steps), lr=float(spec.lr), lr_schedule=cfg.schedule.lr_schedule,
-                  weight_decay=float(cfg.schedule.weight_decay), warmup_steps=int(spec.get("warmup_steps", 0)))
-    if kind in ("flow", "depth_motion"):
-        kwargs.update(net=spec.net, oracle=spec.get("oracle"))
-    elif kind == "iterative":
-        kwargs.update(queue_size=int(spec.queue_size))
-    else:
-        kwargs.update(iterations=int(spec.iterations))
-    if kind in ("flow", "iterative"):
-        kwargs.update(sig_start=float(spec.get("sig_start", 0.0)))
-    if kind == "flow" and spec.get("level5_fade") is not None:
-        kwargs.update(level5_fade=float(spec.level5_fade))
-    if kind == "depth_motion" and spec.get("gt_flow_warmup") is not None:
-        kwargs.update(gt_flow_warmup=float(spec.gt_flow_warmup))
-    module = STAGE_KINDS[kind](chain, weights=OmegaConf.to_container(cfg.loss, resolve=True),
-                               channels_last=bool(cfg.model.get("channels_last", False)),
-                               reuse_frozen=bool(cfg.trainer.reuse_frozen), **kwargs)
-    batch = int(spec.get("batch_size") or cfg.data.batch_size)
+    module = STAGE_KINDS[spec.kind](chain, weights=OmegaConf.to_container(cfg.loss, resolve=True),
+                                     lr_schedule=cfg.schedule.lr_schedule,
+                                     weight_decay=float(cfg.schedule.weight_decay),
+                                     channels_last=bool(cfg.model.channels_last),
+                                     reuse_frozen=bool(cfg.trainer.reuse_frozen), **spec.module_options())
+    batch = int(spec.batch_size or cfg.data.batch_size)
     resume = stage.last_checkpoint if stage.last_checkpoint.is_file() else None
-    if resume is None and spec.get("restarts") is not None:
+    if resume is None and isinstance(spec, FlowStageSpec) and spec.restarts is not None:
         resume = screen_restarts(cfg, chain, stage, module, logger)
     start_step = _checkpoint_step(resume) if resume is not None else 0
     # A resumed stage continues the sample sequence where the checkpoint left it: same batches,
     # same result as an uninterrupted run (on the CPU).
     # With DDP the global batch is the configured one, each process taking its slice of every batch
     # (demon_lab's sampler deals them, not Lightning's, which would reshuffle the sequence).
-    datamodule = build_datamodule(cfg, batch, int(spec.steps) * batch, skip=start_step * batch,
-                                  easy_first=spec.get("easy_first"), layers_first=spec.get("layers_first"),
+    datamodule = build_datamodule(cfg, batch, spec.steps * batch, skip=start_step * batch,
+                                  **spec.curriculum(),
                                   pin_memory=resolve_accelerator(cfg.trainer.accelerator) == "cuda")
     checkpoint = L.pytorch.callbacks.ModelCheckpoint(
         dirpath=stage.path, filename="step{step}", save_last=True, save_top_k=0,
-        every_n_train_steps=max(1, int(cfg.scale.get("checkpoint_every", 50))), auto_insert_metric_name=False)
+        every_n_train_steps=max(1, int(cfg.scale.checkpoint_every)), auto_insert_metric_name=False)
     callbacks: list = [checkpoint]
     if logger is not None and cfg.data.get("val") and global_rank(cfg) == 0:
         from demon_lab.pipeline.config import instantiate
         from demon_lab.pipeline.stages.validation import StageValidation
 
-        passes = int(spec.iterations) if kind == "refine" else int(stage.name in ("flow2", "dm2", "iterative"))
+        passes = spec.iterations if spec.kind == "refine" else int(stage.name in ("flow2", "dm2", "iterative"))
         callbacks.append(StageValidation(stage.name, [instantiate(e) for e in cfg.data.val],
-                                         int(cfg.tracking.get("val_every_n_steps", 0)), passes))
-    trainer = _trainer(cfg, int(spec.steps), logger=logger if logger is not None else False, callbacks=callbacks,
+                                         int(cfg.tracking.val_every_n_steps), passes))
+    trainer = _trainer(cfg, spec.steps, logger=logger if logger is not None else False, callbacks=callbacks,
                        enable_progress_bar=progress)
     if resume is not None:
         log.info("resuming stage %s from step %d (%s)", stage.name, start_step, resume)
@@ -119,7 +107,7 @@ def train_stage(cfg: DictConfig, chain: DeMoN, stage: StageDir, logger: L.pytorc
     seconds = time.perf_counter() - start
     if global_rank(cfg) == 0:
         stage.save({net: plain_state(getattr(chain, net)) for net in TRAINED_NETS[stage.name]})
-    steps_done = int(spec.steps) - start_step
+    steps_done = spec.steps - start_step
     figures = {"seconds": seconds, "steps_per_second": steps_done / max(seconds, 1e-9), "resumed_from_step": start_step,
                **{f"final/{k}": v for k, v in module.last_terms.items()}}
     if module.memo is not None and module.memo.hits + module.memo.misses:
@@ -136,7 +124,7 @@ def _trainer(cfg: DictConfig, steps: int, **kwargs) -> L.Trainer:
     return L.Trainer(
         max_steps=steps, accelerator=cfg.trainer.accelerator, devices=int(cfg.trainer.devices),
         num_nodes=int(cfg.trainer.num_nodes), strategy="ddp" if world_size(cfg) > 1 else "auto",
-        precision=normalize_precision(cfg.get("precision", 32)),
+        precision=normalize_precision(cfg.precision),
         log_every_n_steps=int(cfg.tracking.log_every_n_steps), gradient_clip_val=float(cfg.schedule.grad_clip),
         gradient_clip_algorithm="value", enable_model_summary=False,
         num_sanity_val_steps=0, limit_val_batches=0, deterministic="warn", benchmark=False,
@@ -158,9 +146,9 @@ def screen_restarts(cfg: DictConfig, chain: DeMoN, stage: StageDir, module: L.Li
     from demon_lab.pipeline.config import instantiate
     from demon_lab.pipeline.stages.validation import StageValidation
 
-    spec = cfg.schedule.stages[stage.name]
-    starts, steps = int(spec.restarts[0]), int(spec.restarts[1])
-    batch = int(spec.get("batch_size") or cfg.data.batch_size)
+    spec = stage_spec(cfg, stage.name)
+    starts, steps = spec.restarts
+    batch = int(spec.batch_size or cfg.data.batch_size)
     (net_name,) = TRAINED_NETS[stage.name]
     net = getattr(chain, net_name)
     scorer = StageValidation(stage.name, [instantiate(e) for e in cfg.data.val], 0, 0)
@@ -170,8 +158,7 @@ def screen_restarts(cfg: DictConfig, chain: DeMoN, stage: StageDir, module: L.Li
             with torch.random.fork_rng(devices=[]):
                 torch.manual_seed(int(cfg.seed) * 1_000_003 + i)
                 net.apply(initialise)
-        data = build_datamodule(cfg, batch, int(spec.steps) * batch, easy_first=spec.get("easy_first"),
-                                layers_first=spec.get("layers_first"))
+        data = build_datamodule(cfg, batch, spec.steps * batch, **spec.curriculum())
         # saved at its last step inside the epoch, as the stage's own checkpoints: the stage resumes from it
         saved = L.pytorch.callbacks.ModelCheckpoint(dirpath=stage.path, filename=f"restart{i}", save_top_k=-1,
                                                     every_n_train_steps=steps, enable_version_counter=False)
@@ -223,11 +210,11 @@ def prepare_chain(cfg: DictConfig, on_stage: Callable[[StageDir, str], L.pytorch
     L.seed_everything(int(cfg.seed), workers=True, verbose=False)
     chain = build_chain(cfg)
     figures: dict[str, dict] = {}
-    if cfg.model.get("weights"):
+    if cfg.model.weights:
         log.info("model.weights: %s loaded into the chain%s", cfg.model.weights,
-                 "" if not cfg.get("train", True) else " (the stages train from it)")
-    if not cfg.get("train", True):
-        if not cfg.model.get("weights"):
+                 "" if not cfg.train else " (the stages train from it)")
+    if not cfg.train:
+        if not cfg.model.weights:
             log.info("train=false: evaluating the untrained chain")
         return chain.eval(), [], figures
     if not all(stage.done() for stage in stage_dirs(cfg)):

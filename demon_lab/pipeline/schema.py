@@ -1,0 +1,187 @@
+"""The parts of a job's config the pipeline acts on, as typed values.
+
+Hydra composes ``conf/`` into a DictConfig and :func:`demon_lab.pipeline.validate.validate`
+checks it, one line per error. The pipeline then reads the chain's options and each training
+stage through these frozen dataclasses rather than through the raw config:
+
+- :class:`ModelSpec` (``model``): every key is in ``conf/model/demon.yaml``, so its defaults are
+  written there and nowhere else;
+- one :class:`StageSpec` subclass per stage kind (``schedule.stages.NAME``, told apart by its
+  ``kind``): the options that every stage of a kind has come from ``conf/schedule/``; the options a
+  stage may leave out (the departures and probes of the ``cpu`` scale) have their defaults here,
+  and an option its kind does not take is an error.
+
+The raw DictConfig stays what a job's key hashes (:mod:`demon_lab.pipeline.identity`): the keys of a
+stage and a run do not depend on this module.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, fields
+from typing import Any, ClassVar
+
+from omegaconf import DictConfig, OmegaConf
+
+from demon_lab.core.losses import stage_weight_keys
+from demon_lab.pipeline.config import ConfigError
+
+PRIOR_KEYS = ("flow1_prior", "dm1_prior", "flow2_prior", "dm2_prior")
+"""The model options that give a net a prior (:mod:`demon_lab.nets.prior`)."""
+
+
+@dataclass(frozen=True)
+class ModelSpec:
+    """``model``: the chain (:class:`demon_lab.nets.DeMoN`) and how its nets run."""
+
+    variant: str
+    width: float
+    compat: str | None
+    correlation: tuple[int, int] | None
+    flow1_prior: str | None
+    dm1_prior: str | None
+    flow2_prior: str | None
+    dm2_prior: str | None
+    channels_last: bool
+    compile: bool
+    weights: str | None
+
+    @classmethod
+    def of(cls, model: DictConfig) -> ModelSpec:
+        values = OmegaConf.to_container(model, resolve=True)
+        correlation = values["correlation"]
+        return cls(**{**{f.name: values[f.name] for f in fields(cls)},
+                      "width": float(values["width"]),
+                      "correlation": tuple(correlation) if isinstance(correlation, list) else correlation})
+
+    def priors(self) -> dict[str, str | None]:
+        """The prior options as the chain takes them (keyword arguments)."""
+        return {k: getattr(self, k) for k in PRIOR_KEYS}
+
+
+@dataclass(frozen=True)
+class StageSpec:
+    """``schedule.stages.NAME``: what every kind of stage takes."""
+
+    kind: ClassVar[str]
+    name: str
+    steps: int
+    lr: float
+    warmup_steps: int = 0
+    """Linear learning-rate warm-up (0: none, as DeMoN)."""
+    batch_size: int | None = None
+    """The stage's own batch (None: ``data.batch_size``)."""
+    oracle: str | None = None
+    """Ground-truth inputs in training ('flow' for depth-motion stages, 'depth_motion' for flow2)."""
+    easy_first: tuple[float, float] | None = None
+    """A curriculum: the easiest fraction of samples first, widening to all (None: none)."""
+
+    def module_options(self) -> dict[str, Any]:
+        """The keyword arguments of the stage's module (:data:`demon_lab.pipeline.stages.modules.STAGE_KINDS`)
+        that the stage's options set."""
+        return {"steps": self.steps, "lr": self.lr, "warmup_steps": self.warmup_steps}
+
+    def weight_keys(self) -> tuple[str, ...]:
+        """The loss weights the stage reads (:func:`demon_lab.core.losses.stage_weight_keys`)."""
+        return stage_weight_keys(self.kind)
+
+    def curriculum(self) -> dict[str, Any]:
+        """The keyword arguments of the stage's training data (:func:`demon_lab.data.datamodule.build_datamodule`)
+        that the stage's options set."""
+        return {"easy_first": self.easy_first}
+
+
+@dataclass(frozen=True)
+class FlowStageSpec(StageSpec):
+    """A flow net's stage (``flow1``, or ``flow2`` on the frozen bootstrap net)."""
+
+    kind: ClassVar[str] = "flow"
+    net: str = "flow1"
+    sig_start: float = 0.0
+    """The fraction of the stage before its sig terms ramp in (0: DeMoN's; 1: never)."""
+    level5_fade: float = 1 / 3
+    """The fraction of the stage over which the level-5 terms fade out (DeMoN's third)."""
+    layers_first: float | None = None
+    """``flow1``: the first fraction of the stage on 2-D layers under affine motion (None: none)."""
+    restarts: tuple[int, int] | None = None
+    """``flow1``: ``[k, steps]`` starts screened on the held-apart sets (None: one start)."""
+
+    def module_options(self) -> dict[str, Any]:
+        return {**super().module_options(), "net": self.net, "oracle": self.oracle, "sig_start": self.sig_start,
+                "level5_fade": self.level5_fade}
+
+    def weight_keys(self) -> tuple[str, ...]:
+        return stage_weight_keys(self.kind, self.sig_start)
+
+    def curriculum(self) -> dict[str, Any]:
+        return {**super().curriculum(), "layers_first": self.layers_first}
+
+
+@dataclass(frozen=True)
+class DepthMotionStageSpec(StageSpec):
+    """A depth-motion net's stage (``dm1`` on the frozen ``flow1``, ``dm2`` on the frozen ``flow2``)."""
+
+    kind: ClassVar[str] = "depth_motion"
+    net: str = "dm1"
+    gt_flow_warmup: float = 0.0
+    """The first fraction of the stage fed ground-truth flow (0: none, as DeMoN)."""
+
+    def module_options(self) -> dict[str, Any]:
+        return {**super().module_options(), "net": self.net, "oracle": self.oracle,
+                "gt_flow_warmup": self.gt_flow_warmup}
+
+
+@dataclass(frozen=True)
+class IterativeStageSpec(StageSpec):
+    """``flow2`` and ``dm2`` trained together on DeMoN's queue of previous predictions."""
+
+    kind: ClassVar[str] = "iterative"
+    queue_size: int = 24
+    """Queued samples per step, beside the batch's new ones (DeMoN: 24)."""
+    sig_start: float = 0.0
+
+    def module_options(self) -> dict[str, Any]:
+        return {**super().module_options(), "queue_size": self.queue_size, "sig_start": self.sig_start}
+
+    def weight_keys(self) -> tuple[str, ...]:
+        return stage_weight_keys(self.kind, self.sig_start)
+
+
+@dataclass(frozen=True)
+class RefineStageSpec(StageSpec):
+    """The refinement net on the frozen chain's depth after ``iterations`` passes."""
+
+    kind: ClassVar[str] = "refine"
+    iterations: int = 3
+
+    def module_options(self) -> dict[str, Any]:
+        return {**super().module_options(), "iterations": self.iterations}
+
+
+STAGE_SPECS: dict[str, type[StageSpec]] = {s.kind: s for s in (FlowStageSpec, DepthMotionStageSpec,
+                                                              IterativeStageSpec, RefineStageSpec)}
+"""The kinds of training stage (``schedule.stages.NAME.kind``) and their options."""
+STAGE_KIND_NAMES = tuple(STAGE_SPECS)
+
+
+def options_of(kind: str) -> tuple[str, ...]:
+    """The options a stage of ``kind`` takes (``kind`` itself included)."""
+    return ("kind", *(f.name for f in fields(STAGE_SPECS[kind]) if f.name != "name"))
+
+
+def stage_spec(cfg: DictConfig, name: str) -> StageSpec:
+    """``schedule.stages.NAME`` as its kind's spec; an option left out, or null where its default is
+    not, takes the default; an option the kind does not take is a ConfigError."""
+    values = OmegaConf.to_container(cfg.schedule.stages[name], resolve=True)
+    kind = values.pop("kind")
+    spec = STAGE_SPECS[kind]
+    unknown = sorted(set(values) - set(options_of(kind)))
+    if unknown:
+        raise ConfigError(f"schedule.stages.{name}.{unknown[0]}: not an option of a {kind} stage (its options: "
+                          f"{', '.join(options_of(kind))})")
+    defaults = {f.name: f.default for f in fields(spec) if f.default is not dataclasses.MISSING}
+    values = {k: v for k, v in values.items() if v is not None or defaults.get(k) is None}
+    for key in ("easy_first", "restarts"):
+        if values.get(key) is not None:
+            values[key] = tuple(values[key])
+    return spec(name=name, **values)
