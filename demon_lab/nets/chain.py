@@ -27,7 +27,7 @@ from demon_lab.core.execution import float32
 from demon_lab.nets.blocks import check_correlation, check_size, check_variant
 from demon_lab.nets.depth_motion_net import DepthMotion, DepthMotionNet
 from demon_lab.nets.flow_net import FlowNet
-from demon_lab.nets.prior import check_prior, ransac_motion
+from demon_lab.nets.prior import DIS_UPSAMPLE, PRIOR_RANSAC, check_prior, dis_prior, ransac_motion
 from demon_lab.nets.refine_net import RefineNet
 
 ORACLES = (None, "flow", "depth_motion")
@@ -142,10 +142,12 @@ class DeMoN(nn.Module):
     values), for its converted weights (``python -m demon_lab.convert``). ``correlation``:
     ``(max_displacement, stride)`` of a correlation front in both flow nets (:class:`FlowNet`;
     not DeMoN's design), or None. ``flow1_prior``: ``"dis"`` gives the bootstrap flow net a
-    classical prior flow (:mod:`demon_lab.nets.prior`; not DeMoN's design), or None. ``dm1_prior``:
+    classical prior flow (:mod:`demon_lab.nets.prior`; not DeMoN's design; ``"dis_x2"``: computed on
+    the pair upsampled 2x), or None. ``dm1_prior``:
     ``"ransac"`` gives the bootstrap depth-motion net the motion that 5-point RANSAC reads from the
-    flow, in the form the iterative net reads the previous motion (the depth triangulated with it),
-    and the net predicts a correction of that motion, starting at none; or None. ``dm2_prior``:
+    flow (``"ransac_prior"``: from flow1's classical prior flow), in the form the iterative net reads
+    the previous motion (the depth triangulated with it), and the net predicts a correction of that
+    motion, starting at none; or None. ``dm2_prior``:
     ``"previous"`` makes the iterative depth-motion net predict a correction of the previous pass's
     motion (which it reads, as DeMoN's does), starting at none, instead of the motion itself; or
     None (:mod:`demon_lab.nets.prior`; not DeMoN's design). ``flow2_prior``: ``"previous"`` makes the
@@ -177,6 +179,8 @@ class DeMoN(nn.Module):
         self.flow1_prior = check_prior(flow1_prior)
         self.flow1 = FlowNet(iterative=False, correlation=self.correlation, prior=self.flow1_prior, **kw)
         self.dm1_prior = check_prior(dm1_prior, "dm1_prior")
+        if self.dm1_prior == "ransac_prior" and not self.flow1_prior:
+            raise ValueError("dm1_prior='ransac_prior' reads flow1's classical prior flow: it needs a flow1_prior")
         self.dm1 = DepthMotionNet(iterative=self.dm1_prior is not None, **kw)  # + the depth from the prior
         self.flow2_prior = check_prior(flow2_prior, "flow2_prior")
         self.flow2 = FlowNet(iterative=True, correlation=self.correlation, **kw)
@@ -196,25 +200,42 @@ class DeMoN(nn.Module):
 
     def bootstrap(self, pair: torch.Tensor, image2_2: torch.Tensor, intrinsics: torch.Tensor,
                   gt2: GroundTruthInputs | None = None, oracle: str | None = None) -> Prediction:
-        flowconf5, flowconf2 = self.flow1(pair)
+        prior_flow = self.prior_flow(pair)
+        flowconf5, flowconf2 = self.flow1(pair, prior2=prior_flow)
         flow, conf = flowconf2[:, :2], flowconf2[:, 2:]
         dm_flow, dm_conf = (gt2.flow, _oracle_confidence(gt2.flow)) if oracle == "flow" else (flow, conf)
-        dm = self.depth_motion1(pair, image2_2, dm_flow, dm_conf, intrinsics)
+        if oracle == "flow":  # the ground-truth flow replaces flow1's prior too
+            prior_flow = None
+        dm = self.depth_motion1(pair, image2_2, dm_flow, dm_conf, intrinsics, prior_flow=prior_flow)
         return Prediction(flow, conf, flowconf5[:, :2], flowconf5[:, 2:], dm.inv_depth, dm.normals, dm.motion)
 
     def depth_motion1(self, pair: torch.Tensor, image2_2: torch.Tensor, flow: torch.Tensor, conf: torch.Tensor,
-                      intrinsics: torch.Tensor, prior: torch.Tensor | None = None) -> DepthMotion:
+                      intrinsics: torch.Tensor, prior: torch.Tensor | None = None,
+                      prior_flow: torch.Tensor | None = None) -> DepthMotion:
         """The bootstrap depth-motion net on a flow and its confidence (with ``dm1_prior``: on the
-        5-point RANSAC motion of that flow too, and the motion it returns is that motion corrected;
-        ``prior`` is that motion where the caller has it, :meth:`prior_motion`)."""
+        5-point RANSAC motion of that flow, or of ``prior_flow``, flow1's classical prior, too, and
+        the motion it returns is that motion corrected; ``prior`` is that motion where the caller
+        has it, :meth:`prior_motion`)."""
         if not self.dm1_prior:
             return self.dm1(pair, depth_motion_net_inputs(image2_2, flow, conf, None, intrinsics, self.compat))
-        prior = self.prior_motion(flow, intrinsics) if prior is None else prior
+        prior = self.prior_motion(flow, intrinsics, prior_flow) if prior is None else prior
         dm = self.dm1(pair, depth_motion_net_inputs(image2_2, flow, conf, prior, intrinsics, self.compat))
         return replace(dm, motion=dm.motion + prior)
 
-    def prior_motion(self, flow: torch.Tensor, intrinsics: torch.Tensor) -> torch.Tensor | None:
-        """The motion ``dm1`` corrects (``dm1_prior``): 5-point RANSAC on ``flow``; None without the prior."""
+    def prior_flow(self, pair: torch.Tensor) -> torch.Tensor | None:
+        """``flow1``'s classical prior flow at level 2 (``flow1_prior``); None without one."""
+        if not self.flow1_prior:
+            return None
+        with torch.no_grad():
+            return dis_prior(pair, level=2, upsample=DIS_UPSAMPLE[self.flow1_prior])
+
+    def prior_motion(self, flow: torch.Tensor, intrinsics: torch.Tensor,
+                     prior_flow: torch.Tensor | None = None) -> torch.Tensor | None:
+        """The motion ``dm1`` corrects (``dm1_prior``): 5-point RANSAC on ``flow`` (``ransac``) or on
+        ``prior_flow`` where given (``ransac_prior``, on every level-2 vector with a tight
+        threshold); None without the prior."""
+        if self.dm1_prior == "ransac_prior":
+            return ransac_motion(flow if prior_flow is None else prior_flow, intrinsics, *PRIOR_RANSAC)
         return ransac_motion(flow, intrinsics) if self.dm1_prior else None
 
     def depth_motion2(self, pair: torch.Tensor, image2_2: torch.Tensor, flow: torch.Tensor, conf: torch.Tensor,

@@ -22,7 +22,7 @@ from demon_lab.nets.blocks import (
     lrelu,
     scaled,
 )
-from demon_lab.nets.prior import check_prior, dis_prior
+from demon_lab.nets.prior import DIS_UPSAMPLE, check_prior, dis_prior
 
 
 class Dense5(nn.Module):
@@ -57,7 +57,7 @@ class FlowNet(nn.Module):
             feature maps at level 2 over displacements ``-max_displacement .. max_displacement``
             in steps of ``stride`` (level-2 pixels), next to a 1x1 projection of image 1's features.
             None: DeMoN's net, both images stacked at the input.
-        prior: ``"dis"``: a classical prior flow of the pair (:mod:`demon_lab.nets.prior`; not
+        prior: ``"dis"`` or ``"dis_x2"``: a classical prior flow of the pair (:mod:`demon_lab.nets.prior`; not
             DeMoN's design) enters at level 2 as the iterative net's prior does (5 extra inputs:
             image 2 warped with the prior, the prior), and the net predicts a correction: the
             prior is added to its flow at levels 5 and 2. Bootstrap net only. None: no prior.
@@ -120,7 +120,9 @@ class FlowNet(nn.Module):
             x = torch.cat([x, self.conv2_extra(extra)], 1)
         if self.prior:
             with torch.no_grad():
-                prior2 = dis_prior(pair, level=2) if prior2 is None else prior2.float()
+                if prior2 is None:
+                    prior2 = dis_prior(pair, level=2, upsample=DIS_UPSAMPLE[self.prior])
+                prior2 = prior2.float()
                 warped = warp_image(F.avg_pool2d(pair[:, 3:].float(), 4), prior2)
             x = torch.cat([x, self.conv2_prior(torch.cat([warped, prior2], 1).to(x.dtype))], 1)
         conv2_1 = self.conv2_1(x)

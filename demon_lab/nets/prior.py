@@ -42,10 +42,15 @@ from demon_lab.baselines.twoview import (
     to_gray_u8,
 )
 
-PRIORS = (None, "dis")
-"""``model.flow1_prior``: none, or OpenCV's DIS flow."""
-MOTION_PRIORS = (None, "ransac")
-"""``model.dm1_prior``: none, or 5-point RANSAC on the flow."""
+PRIORS = (None, "dis", "dis_x2")
+"""``model.flow1_prior``: none, OpenCV's DIS flow of the pair, or of the pair upsampled 2x."""
+DIS_UPSAMPLE = {"dis": 1, "dis_x2": 2}
+"""How much each DIS prior upsamples the pair (bicubic) before the flow is computed: at the ``cpu``
+scale's 128x96 DIS finds sub-pixel matches on the 2x images that it misses on the pair itself
+(docs/cpu_scale.md, "A finer classical prior")."""
+MOTION_PRIORS = (None, "ransac", "ransac_prior")
+"""``model.dm1_prior``: none, 5-point RANSAC on the flow ``dm1`` reads (``flow1``'s), or on
+``flow1``'s classical prior flow (needs ``model.flow1_prior``)."""
 PREVIOUS_MOTION_PRIORS = (None, "previous")
 """``model.dm2_prior``: none, or the previous pass's motion."""
 PREVIOUS_FLOW_PRIORS = (None, "previous")
@@ -54,6 +59,9 @@ RANSAC_THRESHOLD_PX = 2.0
 """The 5-point RANSAC's inlier threshold in pixels at width 256, scaled to the flow's width."""
 RANSAC_POINTS = 256
 """Flow vectors the RANSAC reads (a fixed random subset of the level-2 flow's)."""
+PRIOR_RANSAC = (1024, 1.0)
+"""``ransac_prior``'s points (every level-2 vector up to this many) and inlier threshold (pixels at
+width 256): a classical flow is precise where it matches, so a tight threshold keeps its matches."""
 MIN_INLIERS = 16
 
 DIS_SETTINGS = ("medium", 0, 25)
@@ -72,34 +80,42 @@ def check_prior(prior: str | None, option: str = "flow1_prior") -> str | None:
     return prior
 
 
-def _pixel_flow(pair: np.ndarray) -> np.ndarray:
-    """(6, H, W) float image pair in [-0.5, 0.5] -> (2, H, W) DIS flow in pixels."""
-    image1, image2 = torch.from_numpy(pair[:3]), torch.from_numpy(pair[3:])
-    return dense_flow(to_gray_u8(image1), to_gray_u8(image2), *DIS_SETTINGS).transpose(2, 0, 1)
+def _pixel_flow(args: tuple[np.ndarray, int]) -> np.ndarray:
+    """(6, H, W) float image pair in [-0.5, 0.5] and an upsampling factor -> (2, uH, uW) DIS flow in
+    pixels of the upsampled pair."""
+    pair, upsample = args
+    image1, image2 = to_gray_u8(torch.from_numpy(pair[:3])), to_gray_u8(torch.from_numpy(pair[3:]))
+    if upsample > 1:
+        image1, image2 = (cv2.resize(im, None, fx=upsample, fy=upsample, interpolation=cv2.INTER_CUBIC)
+                          for im in (image1, image2))
+    return dense_flow(image1, image2, *DIS_SETTINGS).transpose(2, 0, 1)
 
 
-def dis_prior(pair: torch.Tensor, level: int = 2) -> torch.Tensor:
-    """The DIS flow of each pair of ``pair`` (B, 6, H, W) = [image 1, image 2], normalised (x by the
-    width, y by the height) and averaged over ``2**level`` x ``2**level`` blocks: (B, 2, H/2**level,
-    W/2**level), float32 on ``pair``'s device. No gradient flows through it. The pairs run on as many
-    threads as torch uses (OpenCV releases the GIL)."""
+def dis_prior(pair: torch.Tensor, level: int = 2, upsample: int = 1) -> torch.Tensor:
+    """The DIS flow of each pair of ``pair`` (B, 6, H, W) = [image 1, image 2], computed on the pair
+    upsampled ``upsample`` times, normalised (x by the width, y by the height) and averaged over the
+    blocks of one pixel at ``level``: (B, 2, H/2**level, W/2**level), float32 on ``pair``'s device. No
+    gradient flows through it. The pairs run on as many threads as torch uses (OpenCV releases the GIL)."""
     height, width = pair.shape[2:]
     images = pair.detach().float().cpu().numpy()
     with ThreadPoolExecutor(max(1, torch.get_num_threads())) as pool:
-        flows = list(pool.map(_pixel_flow, images))
+        flows = list(pool.map(_pixel_flow, [(image, upsample) for image in images]))
     flow = torch.from_numpy(np.stack(flows)).to(pair.device)
-    flow = flow / torch.tensor([width, height], dtype=flow.dtype, device=flow.device).view(1, 2, 1, 1)
-    return F.avg_pool2d(flow, 2**level) if level else flow
+    scale = torch.tensor([width * upsample, height * upsample], dtype=flow.dtype, device=flow.device)
+    flow = flow / scale.view(1, 2, 1, 1)
+    block = 2**level * upsample
+    return F.avg_pool2d(flow, block) if block > 1 else flow
 
 
-def _five_point(args: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
-    """(2, h, w) normalised flow and (4,) normalised intrinsics -> motion [r, t] (6,), unit t; zeros
-    (no rotation, no translation) where the flow gives no essential matrix."""
-    flow, intrinsics = args
+def _five_point(args: tuple[np.ndarray, np.ndarray, int, float]) -> np.ndarray:
+    """(2, h, w) normalised flow, (4,) normalised intrinsics, the most points to read and the inlier
+    threshold (pixels at width 256) -> motion [r, t] (6,), unit t; zeros (no rotation, no
+    translation) where the flow gives no essential matrix."""
+    flow, intrinsics, points, threshold = args
     _, h, w = flow.shape
     ys, xs = np.nonzero(np.isfinite(flow).all(0))
-    if len(xs) > RANSAC_POINTS:
-        pick = np.random.default_rng(0).choice(len(xs), RANSAC_POINTS, replace=False)
+    if len(xs) > points:
+        pick = np.random.default_rng(0).choice(len(xs), points, replace=False)
         ys, xs = ys[pick], xs[pick]
     if len(xs) < MIN_INLIERS:
         return np.zeros(6)
@@ -108,7 +124,7 @@ def _five_point(args: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
     K = pixel_intrinsics(intrinsics, h, w)
     try:
         E, mask = cv2.findEssentialMat(x1, x2, K, method=cv2.USAC_FAST, prob=0.999,
-                                       threshold=scaled_threshold(RANSAC_THRESHOLD_PX, w))
+                                       threshold=scaled_threshold(threshold, w))
         if E is None or E.shape != (3, 3) or mask is None or mask.sum() < MIN_INLIERS:
             return np.zeros(6)
         return pose_from_essential(E, x1, x2, K, mask[:, 0].astype(bool))
@@ -116,12 +132,14 @@ def _five_point(args: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
         return np.zeros(6)
 
 
-def ransac_motion(flow: torch.Tensor, intrinsics: torch.Tensor) -> torch.Tensor:
+def ransac_motion(flow: torch.Tensor, intrinsics: torch.Tensor, points: int = RANSAC_POINTS,
+                  threshold: float = RANSAC_THRESHOLD_PX) -> torch.Tensor:
     """The camera motion of each sample by 5-point RANSAC on its flow: ``flow`` (B, 2, h, w)
     normalised, ``intrinsics`` (B, 4) normalised -> (B, 6) [r, t] float32 on ``flow``'s device, t of
-    unit length, zeros for a sample without a solution. No gradient flows through it."""
+    unit length, zeros for a sample without a solution; on at most ``points`` flow vectors, with an
+    inlier ``threshold`` in pixels at width 256. No gradient flows through it."""
     flows = flow.detach().double().cpu().numpy()
     cams = intrinsics.detach().double().cpu().numpy()
     with ThreadPoolExecutor(max(1, torch.get_num_threads())) as pool:
-        motions = list(pool.map(_five_point, zip(flows, cams, strict=True)))
+        motions = list(pool.map(_five_point, [(f, k, points, threshold) for f, k in zip(flows, cams, strict=True)]))
     return torch.from_numpy(np.stack(motions)).float().to(flow.device)

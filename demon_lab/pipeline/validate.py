@@ -110,6 +110,9 @@ def _model_files(cfg: DictConfig) -> None:
 
     for key in PRIOR_KEYS:
         _choice(f"model.{key}", getattr(model, key), CHOICES[key])
+    if model.dm1_prior == "ransac_prior" and model.flow1_prior is None:
+        raise ConfigError("model.dm1_prior: ransac_prior reads flow1's classical prior flow; set model.flow1_prior "
+                          "(dis or dis_x2)")
     for key in PRIOR_KEYS:
         if getattr(model, key) is not None and model.compat == "demon_original":
             raise ConfigError(f"model.{key}: compat=demon_original reproduces DeMoN's released graph, whose "

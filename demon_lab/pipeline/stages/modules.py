@@ -13,7 +13,6 @@ import torch
 
 from demon_lab.core import losses
 from demon_lab.nets.chain import Prediction, ground_truth_inputs
-from demon_lab.nets.prior import dis_prior
 from demon_lab.pipeline.stages.base import StageModule
 
 
@@ -40,7 +39,7 @@ class FlowStage(StageModule):
     def stage_loss(self, batch, gt):
         pair, image2_2, K = self.inputs(batch)
         if self.net == "flow1":
-            prior2 = self.frozen(lambda p: (dis_prior(p, level=2),), pair)[0] if self.chain.flow1_prior else None
+            prior2 = self.frozen(lambda p: (self.chain.prior_flow(p),), pair)[0] if self.chain.flow1_prior else None
             flow5, flow2 = self.chain.flow1(pair, prior2=prior2)
         else:
             oracle = self.oracle == "depth_motion"
@@ -89,9 +88,11 @@ class DepthMotionStage(StageModule):
         return losses.depth_motion_loss(dm.inv_depth, dm.normals, dm.motion, gt, self.weights, ramp=ramp)
 
     def _bootstrap_flow(self, pair, K):
-        """``flow1``'s flow and confidence, and with ``dm1_prior`` the RANSAC motion of that flow."""
-        flow, conf = _flow_and_conf(self.chain.flow1(pair)[1])
-        prior = self.chain.prior_motion(flow, K)
+        """``flow1``'s flow and confidence, and with ``dm1_prior`` the RANSAC motion of that flow (or of
+        its prior flow)."""
+        prior_flow = self.chain.prior_flow(pair)
+        flow, conf = _flow_and_conf(self.chain.flow1(pair, prior2=prior_flow)[1])
+        prior = self.chain.prior_motion(flow, K, prior_flow)
         return (flow, conf) if prior is None else (flow, conf, prior)
 
     def _iterative_flow(self, pair, image2_2, K):
