@@ -104,7 +104,7 @@ def check(args: list[str]) -> str | None:
                 cfg = primary if overrides is None else loader.load_sweep_config(primary, overrides)
                 with read_write(cfg), open_dict(cfg):
                     del cfg["hydra"]  # the job's config, as the task receives it
-                drop_missing_sources(cfg)
+                drop_missing_sources(cfg, cfg.train)
                 validate(cfg, here=launcher not in REMOTE_LAUNCHERS)
                 if multirun and launcher != "slurm_ddp" and world_size(cfg) > 1 and not processes_launched_outside():
                     # Lightning's launcher starts each extra process by re-running the command line:

@@ -870,3 +870,20 @@ def test_a_lead_source_fills_the_first_fraction_of_the_stage_in_whole_batches():
         MixtureSampler(*args, lead=(3, 0.3))
     with pytest.raises(ValueError, match="one curriculum at a time"):
         MixtureSampler([10, 20], [1.0, 1.0], 200, lead=(1, 0.3), easy_first=(0.5, 0.5), order=[range(10), range(20)])
+
+
+def test_data_stats_scores_the_classical_priors_on_the_real_pair():
+    """``priors=true``: the DIS prior flows match the bundled SUN3D pair far better than zero flow, and
+    the RANSAC motion the tight-threshold ``ransac_prior`` reads from them is within a few degrees
+    (the pair's own camera motion is known)."""
+    from demon_lab.data.datasets import PairFolderDataset
+    from demon_lab.tools.data_stats import FLOW_PRIORS, dataset_statistics, format_priors, pair_statistics
+
+    dataset = PairFolderDataset(SUN3D_PAIR)
+    stats = dataset_statistics([dataset], 1, priors=True)
+    zero = pair_statistics(dataset.load(0))["zero_flow_epe"]
+    for name in FLOW_PRIORS:
+        assert stats[f"{name}_epe"] < 0.5 * zero
+        assert stats[f"{name}_ransac_prior_tran_deg"] < 10 and stats[f"{name}_ransac_prior_rot_deg"] < 1
+    assert "dis_x2" in format_priors(stats) and "ransac_prior tran" in format_priors(stats)
+    assert "dis_epe" not in dataset_statistics([dataset], 1)

@@ -522,6 +522,11 @@ def test_the_dis_prior_is_the_pairs_flow_normalised_at_level_2():
     assert torch.allclose(inner[0].median(), torch.tensor(6 / 128), atol=0.25 / 128)
     assert torch.allclose(inner[1].median(), torch.tensor(-4 / 96), atol=0.25 / 96)
     assert dis_prior(pair, level=0).shape == (1, 2, 96, 128)
+    # dis_x2: computed on the pair upsampled 2x, in the same units at the same level
+    finer = dis_prior(pair, upsample=2)
+    assert finer.shape == (1, 2, 24, 32) and dis_prior(pair, level=0, upsample=2).shape == (1, 2, 96, 128)
+    assert torch.allclose(finer[0, 0, 4:-4, 4:-4].median(), torch.tensor(6 / 128), atol=0.25 / 128)
+    assert torch.allclose(finer[0, 1, 4:-4, 4:-4].median(), torch.tensor(-4 / 96), atol=0.25 / 96)
 
 
 def test_the_bootstrap_flow_net_with_a_prior_predicts_a_correction_of_it():
@@ -599,6 +604,35 @@ def test_the_bootstrap_depth_motion_net_with_a_motion_prior_starts_at_that_motio
     assert torch.allclose(q.motion[:, 3:] - p.motion[:, 3:], torch.full((1, 3), 0.1), atol=1e-6)
     with pytest.raises(ValueError, match="dm1_prior: expected one of"):
         DeMoN("v1", 0.25, (64, 64), dm1_prior="lmeds")
+    with pytest.raises(ValueError, match="it needs a flow1_prior"):
+        DeMoN("v1", 0.25, (64, 64), dm1_prior="ransac_prior")
+
+
+def test_ransac_prior_reads_the_motion_from_flow1s_prior_flow_not_its_output():
+    """dm1_prior=ransac_prior: the motion dm1 starts from is RANSAC (every level-2 vector, a 1-pixel
+    threshold) on flow1's classical prior flow, whatever flow1 makes of it; under the flow oracle, on
+    the ground-truth flow."""
+    from demon_lab.nets.chain import ground_truth_inputs
+    from demon_lab.nets.prior import PRIOR_RANSAC, dis_prior, ransac_motion
+
+    torch.manual_seed(0)
+    chain = DeMoN("v1", 0.25, (96, 128), flow1_prior="dis_x2", dm1_prior="ransac_prior")
+    pair = _textured_pair((6, -4))
+    K = torch.tensor([[0.89, 1.19, 0.5, 0.5]])
+    image2_2 = torch.nn.functional.avg_pool2d(pair[:, 3:], 4)
+    with torch.no_grad():
+        for head in (chain.flow1.predict_flow5, chain.flow1.predict_flow2):  # flow1 moves its prior
+            head.out.conv.bias[:2] += 0.05
+        prior_flow = dis_prior(pair, upsample=2)
+        assert torch.equal(chain.prior_flow(pair), prior_flow)
+        p = chain.bootstrap(pair, image2_2, K)
+        assert not torch.allclose(p.flow, prior_flow, atol=0.02)
+        assert torch.allclose(p.motion, ransac_motion(prior_flow, K, *PRIOR_RANSAC))
+        inv = torch.full((1, 1, 96, 128), 0.5)
+        motion = torch.tensor([[0.0, 0.02, 0.0, 1.0, 0.0, 0.0]])
+        gt = {"inv_depth": inv, "motion": motion}
+        q = chain(pair[:, :3], pair[:, 3:], K, iterations=0, oracle="flow", gt=gt, refine=False).passes[0]
+        assert torch.allclose(q.motion, ransac_motion(ground_truth_inputs(gt, K).flow, K, *PRIOR_RANSAC))
     with pytest.raises(ValueError, match="whose nets have no priors"):
         DeMoN("v1", 0.25, (64, 64), compat="demon_original", dm1_prior="ransac")
 

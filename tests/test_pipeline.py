@@ -274,8 +274,10 @@ def test_a_job_that_raises_leaves_its_run_failed(tmp_path):
     (["model.correlation=[2,8]"], "model.correlation: expected [max_displacement, stride], positive integers"),
     (["model.correlation=[4,1]", "model.compat=demon_original"],
      "model.correlation: compat=demon_original reproduces DeMoN's released graph, which has no correlation front"),
-    (["model.flow1_prior=flownet"], "model.flow1_prior: expected one of null, dis, got 'flownet'"),
-    (["model.dm1_prior=lmeds"], "model.dm1_prior: expected one of null, ransac, got 'lmeds'"),
+    (["model.flow1_prior=flownet"], "model.flow1_prior: expected one of null, dis, dis_x2, got 'flownet'"),
+    (["model.dm1_prior=lmeds"], "model.dm1_prior: expected one of null, ransac, ransac_prior, got 'lmeds'"),
+    (["model.dm1_prior=ransac_prior"], "model.dm1_prior: ransac_prior reads flow1's classical prior flow; set "
+                                       "model.flow1_prior (dis or dis_x2)"),
     (["model.dm2_prior=ransac"], "model.dm2_prior: expected one of null, previous, got 'ransac'"),
     (["model.flow2_prior=dis"], "model.flow2_prior: expected one of null, previous, got 'dis'"),
     (["model.flow2_prior=previous", "model.compat=demon_original"],

@@ -65,7 +65,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     """One job. Returns {'status': 'finished'|'skipped'|'worker', 'run_id': ..., 'summary': ...}."""
     from demon_lab.pipeline.config import drop_missing_sources
 
-    for note in drop_missing_sources(cfg):
+    for note in drop_missing_sources(cfg, cfg.train):
         log.info("%s", note)
     validate(cfg)
     if cfg.threads is not None:

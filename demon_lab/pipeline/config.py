@@ -49,17 +49,17 @@ class ConfigError(ValueError):
     """A bad configuration value: the message names the key and what is allowed (one line)."""
 
 
-def drop_missing_sources(cfg: Any) -> list[str]:
+def drop_missing_sources(cfg: Any, train: bool = True) -> list[str]:
     """Remove the data sources marked ``optional: true`` whose ``path`` does not exist, and the
     ``optional`` marks (DeMoN's files under ``data.root``: whichever are present). The training
-    sources only when the job trains (``train=true``). Returns one line per split that lost
+    sources only with ``train`` (a job passes its ``train``). Returns one line per split that lost
     sources, naming them; ConfigError when a split loses all of them."""
     from pathlib import Path
 
     from omegaconf import OmegaConf, open_dict
 
     notes = []
-    splits = [("test", lambda e: e)] + ([("train", lambda e: e.dataset)] if cfg.train else [])
+    splits = [("test", lambda e: e)] + ([("train", lambda e: e.dataset)] if train else [])
     for split, source_of in splits:
         entries = cfg.data.get(split)
         if not entries or not any(source_of(e).get("optional", False) for e in entries):

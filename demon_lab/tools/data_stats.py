@@ -24,7 +24,14 @@ deviation of the log ground-truth depth over the valid pixels, the sc-inv of any
 (what a depth prediction must beat to show structure). Samples are read at the source's native
 resolution (synthetic ones at the configured ``data.size``), without augmentation.
 
+``priors=true`` adds what the chain's classical priors (:mod:`demon_lab.nets.prior`) give on each
+pair, before any net corrects them: ``<flow prior>_epe``, the EPE of the prior flow (``dis``,
+``dis_x2``) at level 2 scored as the chain's flow is; ``<flow prior>_<motion prior>_rot_deg`` and
+``..._tran_deg``, the errors of the 5-point RANSAC motion that ``model.dm1_prior`` (``ransac``,
+``ransac_prior``) reads from that flow.
+
     python -m demon_lab.data_stats data=synthetic_sun3d n=500 out=stats.json
+    python -m demon_lab.data_stats data=synthetic_sun3d split=test n=32 priors=true
     python -m demon_lab.data_stats data=pair_folder data.path=/data/sun3d_pairs
 """
 
@@ -81,14 +88,44 @@ def pair_statistics(sample: dict) -> dict[str, float]:
     }
 
 
-def dataset_statistics(datasets: list, n: int) -> dict[str, Any]:
-    """Table 1 statistics over the first ``n`` pairs of the datasets (in order)."""
+FLOW_PRIORS = ("dis", "dis_x2")
+MOTION_PRIORS = ("ransac", "ransac_prior")
+
+
+def prior_statistics(sample: dict) -> dict[str, float]:
+    """The classical priors of one sample: each flow prior's EPE, and the errors of each RANSAC motion
+    read from it (:mod:`demon_lab.nets.prior`)."""
+    import torch
+
+    from demon_lab.core.metrics import flow_epe, motion_errors, resize_nearest
+    from demon_lab.nets import prior
+
+    pair = torch.cat([sample["image1"], sample["image2"]])[None].float()
+    intrinsics = sample["intrinsics"][None].float()
+    truth = sample["flow"].numpy()
+    out = {}
+    for name in FLOW_PRIORS:
+        flow = prior.dis_prior(pair, level=2, upsample=prior.DIS_UPSAMPLE[name])
+        out[f"{name}_epe"] = flow_epe(resize_nearest(flow[0].double().numpy(), truth.shape[1:]), truth)
+        for motion_prior, settings in (("ransac", (prior.RANSAC_POINTS, prior.RANSAC_THRESHOLD_PX)),
+                                       ("ransac_prior", prior.PRIOR_RANSAC)):
+            errors = motion_errors(prior.ransac_motion(flow, intrinsics, *settings)[0].double().numpy(),
+                                   sample["motion"].double().numpy())
+            out[f"{name}_{motion_prior}_rot_deg"] = errors["rot_deg"]
+            out[f"{name}_{motion_prior}_tran_deg"] = errors["tran_deg"]
+    return out
+
+
+def dataset_statistics(datasets: list, n: int, priors: bool = False) -> dict[str, Any]:
+    """Table 1 statistics over the first ``n`` pairs of the datasets (in order); with ``priors``,
+    the classical priors' errors too (:func:`prior_statistics`)."""
     rows = []
     for dataset in datasets:
         for index in range(len(dataset)):
             if len(rows) >= n:
                 break
-            rows.append(pair_statistics(dataset.load(index)))
+            sample = dataset.load(index)
+            rows.append({**pair_statistics(sample), **(prior_statistics(sample) if priors else {})})
     if not rows:
         raise ConfigError("the configured split has no pair")
     rot = np.array([r["rot_deg"] for r in rows])
@@ -110,6 +147,7 @@ def dataset_statistics(datasets: list, n: int) -> dict[str, Any]:
         "tran_x_negative_fraction": float(np.mean([r["tran_x_negative"] for r in rows])),
         "photometric_error": float(np.nanmean([r["photometric_error"] for r in rows])),
         "near_camera2_fraction": float(np.mean([r["near_camera2"] for r in rows])),
+        **{k: float(np.nanmean([r[k] for r in rows])) for k in rows[0] if k.startswith(FLOW_PRIORS)},
     }
 
 
@@ -122,6 +160,15 @@ def format_table(stats: dict[str, Any]) -> str:
            f"{stats['valid_fraction']:.2f}", f"{stats['visible_fraction']:.2f}",
            f"{stats['median_depth']:.2f}")
     return text_table(header, [row], left=4)
+
+
+def format_priors(stats: dict[str, Any]) -> str:
+    """The classical priors' errors: one row per flow prior (EPE), one column pair per RANSAC motion."""
+    header = ("flow prior", "EPE", *(f"{m} {e}" for m in MOTION_PRIORS for e in ("rot", "tran")))
+    rows = [(name, f"{stats[f'{name}_epe']:.4f}",
+             *(f"{stats[f'{name}_{m}_{e}_deg']:.2f}" for m in MOTION_PRIORS for e in ("rot", "tran")))
+            for name in FLOW_PRIORS]
+    return text_table(header, rows, left=1)
 
 
 def split_datasets(cfg: DictConfig) -> list:
@@ -140,8 +187,12 @@ def split_datasets(cfg: DictConfig) -> list:
 def run(cfg: DictConfig) -> dict[str, Any]:
     if not isinstance(cfg.n, int) or cfg.n < 1:
         raise ConfigError(f"n: expected a positive integer, got {cfg.n!r}")
-    stats = dataset_statistics(split_datasets(cfg), cfg.n)
+    if not isinstance(cfg.priors, bool):
+        raise ConfigError(f"priors: expected true or false, got {cfg.priors!r}")
+    stats = dataset_statistics(split_datasets(cfg), cfg.n, cfg.priors)
     print(format_table(stats))
+    if cfg.priors:
+        print(format_priors(stats))
     if cfg.out:
         Path(cfg.out).write_text(json.dumps(stats, indent=2) + "\n")
         print(f"wrote {cfg.out}")

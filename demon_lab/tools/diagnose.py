@@ -122,7 +122,7 @@ def run(overrides: Sequence[str], out: str | None = None) -> dict[str, list[dict
 
     with initialize_config_dir(str(CONF), version_base="1.3"):
         cfg = compose("config", overrides=list(overrides))
-    drop_missing_sources(cfg)
+    drop_missing_sources(cfg, cfg.train)
     validate(cfg)
     if cfg.threads is not None:
         from demon_lab.core.execution import set_threads
