@@ -17,8 +17,10 @@ import sys
 from typing import Any
 
 from demon_lab import resources
+from demon_lab.pipeline.config import register_resolvers
 
 CONF = str(resources.CONF)
+register_resolvers()  # conf/ interpolates demon_lab's resolvers (${bundled:}, ${non_semantic_overrides:}, ...)
 CONFIG_NAME = "config"
 
 REMOTE_LAUNCHERS = ("slurm", "slurm_ddp")

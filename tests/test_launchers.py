@@ -124,6 +124,8 @@ def test_site_settings_on_the_search_path_reach_the_slurm_launchers(tmp_path):
 
 def test_output_folders_name_the_overrides_not_the_tracking_or_cache(tmp_path):
     with initialize_config_dir(CONF, version_base="1.3"):
-        cfg = compose("config", return_hydra_config=True)
+        cfg = compose("config", [f"tracking.uri=sqlite:///{tmp_path}/m.db", f"cache_dir={tmp_path}", "force=true",
+                                 "seed=1"], return_hydra_config=True)
     excluded = set(cfg.hydra.job.config.override_dirname.exclude_keys)
     assert {"tracking.uri", "cache_dir", "force"} <= excluded and "seed" not in excluded
+    assert cfg.hydra.job.override_dirname == "seed=1"

@@ -33,6 +33,10 @@ def scheduled_stages(cfg: DictConfig) -> list[str]:
     return names[: names.index(cfg.schedule.until) + 1]
 
 
+PRECISION_BEFORE = 32
+"""The nets' precision of a config from before ``precision`` existed (its keys still name its stages)."""
+
+
 def describe_stage(cfg: DictConfig, name: str, upstream: dict[str, str]) -> dict[str, Any]:
     """Everything that determines a stage's result (what its cache key hashes)."""
     plain = lambda node: OmegaConf.to_container(node, resolve=True)  # noqa: E731
@@ -53,7 +57,8 @@ def describe_stage(cfg: DictConfig, name: str, upstream: dict[str, str]) -> dict
         "upstream": dict(upstream),
         # the nets' precision when it is not float32 and the stage trains (left out at 32: the keys from
         # before it existed hold)
-        **({"precision": precision} if (precision := normalize_precision(cfg.precision)) != "32-true"
+        **({"precision": precision}
+           if (precision := normalize_precision(cfg.get("precision", PRECISION_BEFORE))) != "32-true"
            and int(spec.steps) > 0 else {}),
     }
 
