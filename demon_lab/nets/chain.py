@@ -27,7 +27,7 @@ from demon_lab.core.execution import float32
 from demon_lab.nets.blocks import check_correlation, check_size, check_variant
 from demon_lab.nets.depth_motion_net import DepthMotion, DepthMotionNet
 from demon_lab.nets.flow_net import FlowNet
-from demon_lab.nets.prior import DIS_UPSAMPLE, PRIOR_RANSAC, check_prior, dis_prior, ransac_motion
+from demon_lab.nets.prior import RANSAC_SETTINGS, check_prior, ransac_motion
 from demon_lab.nets.refine_net import RefineNet
 
 ORACLES = (None, "flow", "depth_motion")
@@ -200,12 +200,11 @@ class DeMoN(nn.Module):
 
     def bootstrap(self, pair: torch.Tensor, image2_2: torch.Tensor, intrinsics: torch.Tensor,
                   gt2: GroundTruthInputs | None = None, oracle: str | None = None) -> Prediction:
-        prior_flow = self.prior_flow(pair)
-        flowconf5, flowconf2 = self.flow1(pair, prior2=prior_flow)
+        flowconf5, flowconf2, prior_flow = self.flow_net1(pair)
         flow, conf = flowconf2[:, :2], flowconf2[:, 2:]
-        dm_flow, dm_conf = (gt2.flow, _oracle_confidence(gt2.flow)) if oracle == "flow" else (flow, conf)
-        if oracle == "flow":  # the ground-truth flow replaces flow1's prior too
-            prior_flow = None
+        dm_flow, dm_conf = flow, conf
+        if oracle == "flow":  # the ground-truth flow replaces flow1's flow and its prior
+            dm_flow, dm_conf, prior_flow = gt2.flow, _oracle_confidence(gt2.flow), None
         dm = self.depth_motion1(pair, image2_2, dm_flow, dm_conf, intrinsics, prior_flow=prior_flow)
         return Prediction(flow, conf, flowconf5[:, :2], flowconf5[:, 2:], dm.inv_depth, dm.normals, dm.motion)
 
@@ -222,21 +221,21 @@ class DeMoN(nn.Module):
         dm = self.dm1(pair, depth_motion_net_inputs(image2_2, flow, conf, prior, intrinsics, self.compat))
         return replace(dm, motion=dm.motion + prior)
 
-    def prior_flow(self, pair: torch.Tensor) -> torch.Tensor | None:
-        """``flow1``'s classical prior flow at level 2 (``flow1_prior``); None without one."""
-        if not self.flow1_prior:
-            return None
-        with torch.no_grad():
-            return dis_prior(pair, level=2, upsample=DIS_UPSAMPLE[self.flow1_prior])
+    def flow_net1(self, pair: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
+        """The bootstrap flow net: ``(flowconf5, flowconf2)`` as :class:`FlowNet` returns them, and its
+        classical prior flow at level 2 (``flow1_prior``; None without one)."""
+        prior_flow = self.flow1.prior_flow(pair) if self.flow1_prior else None
+        return (*self.flow1(pair, prior2=prior_flow), prior_flow)
 
     def prior_motion(self, flow: torch.Tensor, intrinsics: torch.Tensor,
                      prior_flow: torch.Tensor | None = None) -> torch.Tensor | None:
         """The motion ``dm1`` corrects (``dm1_prior``): 5-point RANSAC on ``flow`` (``ransac``) or on
         ``prior_flow`` where given (``ransac_prior``, on every level-2 vector with a tight
         threshold); None without the prior."""
-        if self.dm1_prior == "ransac_prior":
-            return ransac_motion(flow if prior_flow is None else prior_flow, intrinsics, *PRIOR_RANSAC)
-        return ransac_motion(flow, intrinsics) if self.dm1_prior else None
+        if not self.dm1_prior:
+            return None
+        read = prior_flow if self.dm1_prior == "ransac_prior" and prior_flow is not None else flow
+        return ransac_motion(read, intrinsics, *RANSAC_SETTINGS[self.dm1_prior])
 
     def depth_motion2(self, pair: torch.Tensor, image2_2: torch.Tensor, flow: torch.Tensor, conf: torch.Tensor,
                       prev_motion: torch.Tensor, intrinsics: torch.Tensor) -> DepthMotion:

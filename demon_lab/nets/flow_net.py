@@ -103,10 +103,15 @@ class FlowNet(nn.Module):
         self.refine2 = UpConv(c(128) + c(128), c(64))
         self.predict_flow2 = Head(c(64) + c(64), 4, variant, hidden=c(24))
 
+    def prior_flow(self, pair: torch.Tensor) -> torch.Tensor:
+        """The net's classical prior flow of ``pair`` at level 2 (:func:`demon_lab.nets.prior.dis_prior`)."""
+        with torch.no_grad():
+            return dis_prior(pair, level=2, upsample=DIS_UPSAMPLE[self.prior])
+
     def forward(self, pair: torch.Tensor, extra: torch.Tensor | None = None,
                 prior2: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """``(flowconf5, flowconf2)``. ``prior2``: the prior flow at level 2 where the caller has
-        it (:func:`demon_lab.nets.prior.dis_prior` of ``pair``); None computes it."""
+        it (:meth:`prior_flow`); None computes it."""
         if self.correlation:
             features1 = self.conv2(self.conv1(pair[:, :3]))
             features2 = self.conv2(self.conv1(pair[:, 3:]))
@@ -120,9 +125,7 @@ class FlowNet(nn.Module):
             x = torch.cat([x, self.conv2_extra(extra)], 1)
         if self.prior:
             with torch.no_grad():
-                if prior2 is None:
-                    prior2 = dis_prior(pair, level=2, upsample=DIS_UPSAMPLE[self.prior])
-                prior2 = prior2.float()
+                prior2 = (self.prior_flow(pair) if prior2 is None else prior2).float()
                 warped = warp_image(F.avg_pool2d(pair[:, 3:].float(), 4), prior2)
             x = torch.cat([x, self.conv2_prior(torch.cat([warped, prior2], 1).to(x.dtype))], 1)
         conv2_1 = self.conv2_1(x)

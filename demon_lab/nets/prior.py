@@ -62,6 +62,8 @@ RANSAC_POINTS = 256
 PRIOR_RANSAC = (1024, 1.0)
 """``ransac_prior``'s points (every level-2 vector up to this many) and inlier threshold (pixels at
 width 256): a classical flow is precise where it matches, so a tight threshold keeps its matches."""
+RANSAC_SETTINGS = {"ransac": (RANSAC_POINTS, RANSAC_THRESHOLD_PX), "ransac_prior": PRIOR_RANSAC}
+"""Each ``model.dm1_prior``'s points and threshold (:func:`ransac_motion`)."""
 MIN_INLIERS = 16
 
 DIS_SETTINGS = ("medium", 0, 25)

@@ -11,8 +11,8 @@ stage through these frozen dataclasses rather than through the raw config:
   stage may leave out (the departures and probes of the ``cpu`` scale) have their defaults here,
   and an option its kind does not take is an error.
 
-The raw DictConfig stays what a job's key hashes (:mod:`demon_lab.pipeline.identity`): the keys of a
-stage and a run do not depend on this module.
+A stage key hashes the stage's raw config node, not its spec, so an option's default written here
+does not enter the key of a stage that leaves the option out (:mod:`demon_lab.pipeline.identity`).
 """
 
 from __future__ import annotations

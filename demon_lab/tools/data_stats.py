@@ -89,7 +89,7 @@ def pair_statistics(sample: dict) -> dict[str, float]:
 
 
 FLOW_PRIORS = ("dis", "dis_x2")
-MOTION_PRIORS = ("ransac", "ransac_prior")
+MOTION_PRIORS = ("ransac", "ransac_prior")  # (keys of demon_lab.nets.prior.RANSAC_SETTINGS)
 
 
 def prior_statistics(sample: dict) -> dict[str, float]:
@@ -107,8 +107,8 @@ def prior_statistics(sample: dict) -> dict[str, float]:
     for name in FLOW_PRIORS:
         flow = prior.dis_prior(pair, level=2, upsample=prior.DIS_UPSAMPLE[name])
         out[f"{name}_epe"] = flow_epe(resize_nearest(flow[0].double().numpy(), truth.shape[1:]), truth)
-        for motion_prior, settings in (("ransac", (prior.RANSAC_POINTS, prior.RANSAC_THRESHOLD_PX)),
-                                       ("ransac_prior", prior.PRIOR_RANSAC)):
+        for motion_prior in MOTION_PRIORS:
+            settings = prior.RANSAC_SETTINGS[motion_prior]
             errors = motion_errors(prior.ransac_motion(flow, intrinsics, *settings)[0].double().numpy(),
                                    sample["motion"].double().numpy())
             out[f"{name}_{motion_prior}_rot_deg"] = errors["rot_deg"]

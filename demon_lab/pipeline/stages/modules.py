@@ -39,7 +39,9 @@ class FlowStage(StageModule):
     def stage_loss(self, batch, gt):
         pair, image2_2, K = self.inputs(batch)
         if self.net == "flow1":
-            prior2 = self.frozen(lambda p: (self.chain.prior_flow(p),), pair)[0] if self.chain.flow1_prior else None
+            prior2 = None
+            if self.chain.flow1_prior:
+                prior2, = self.frozen(lambda p: (self.chain.flow1.prior_flow(p),), pair)
             flow5, flow2 = self.chain.flow1(pair, prior2=prior2)
         else:
             oracle = self.oracle == "depth_motion"
@@ -90,8 +92,8 @@ class DepthMotionStage(StageModule):
     def _bootstrap_flow(self, pair, K):
         """``flow1``'s flow and confidence, and with ``dm1_prior`` the RANSAC motion of that flow (or of
         its prior flow)."""
-        prior_flow = self.chain.prior_flow(pair)
-        flow, conf = _flow_and_conf(self.chain.flow1(pair, prior2=prior_flow)[1])
+        _, flowconf, prior_flow = self.chain.flow_net1(pair)
+        flow, conf = _flow_and_conf(flowconf)
         prior = self.chain.prior_motion(flow, K, prior_flow)
         return (flow, conf) if prior is None else (flow, conf, prior)
 
