@@ -435,6 +435,10 @@ def test_the_probe_options_are_absent_from_every_profile_and_key_only_their_stag
                                                                              strict=True))
 
 
+# The cpu profile's departures turned off: DeMoN's design at every scale (cpu takes the four priors).
+DEMON_DESIGN = ("model.flow1_prior=null", "model.dm1_prior=null", "model.flow2_prior=null", "model.dm2_prior=null")
+
+
 @pytest.mark.parametrize("option, key, built", [
     ("model.correlation=[8,2]", "correlation",
      lambda chain: chain.flow1.correlation == (8, 2) and chain.flow2.correlation == (8, 2)),
@@ -447,8 +451,8 @@ def test_a_flow_net_option_keys_every_stage_and_the_run_and_is_absent_by_default
     from demon_lab.pipeline.stages.schedule import build_chain, stage_dirs
 
     with initialize_config_dir(CONF, version_base="1.3"):
-        plain = compose("config", [f"scale={scale}"])
-        changed = compose("config", [f"scale={scale}", option])
+        plain = compose("config", [f"scale={scale}", *DEMON_DESIGN])
+        changed = compose("config", [f"scale={scale}", *DEMON_DESIGN, option])
     assert plain.model[key] is None and key not in semantic_config(plain)["model"]
     assert all(a.key != b.key for a, b in zip(stage_dirs(plain), stage_dirs(changed), strict=True))
     assert run_key(plain) != run_key(changed)
@@ -465,8 +469,8 @@ def test_a_motion_prior_keys_the_stages_from_its_net_on_and_shares_those_before(
 
     key, value = option.split("=")
     with initialize_config_dir(CONF, version_base="1.3"):
-        plain = compose("config", ["scale=cpu"])
-        prior = compose("config", ["scale=cpu", f"model.{option}"])
+        plain = compose("config", ["scale=cpu", *DEMON_DESIGN])
+        prior = compose("config", ["scale=cpu", *DEMON_DESIGN, f"model.{option}"])
     assert plain.model[key] is None and run_key(plain) != run_key(prior)
     a, b = stage_dirs(plain), stage_dirs(prior)
     names = [d.name for d in a]
@@ -498,24 +502,30 @@ def test_the_stages_train_the_chain_with_all_four_priors_and_under_the_depth_mot
         assert math.isfinite(oracle["summary"][name]["it1/epe"])
 
 
-def test_every_profile_keeps_demons_design_and_the_departures_study_names_each_prior_it_turns_on():
-    """No profile takes a prior (the four priors are the cpu_departures study's candidate profile);
-    each row of that study turns on exactly the priors its name says, and row profile all four."""
+def test_only_the_cpu_profile_departs_and_the_departures_study_turns_each_departure_off():
+    """The cpu profile takes the four priors (dis_x2, ransac_prior, previous, previous) and the memo;
+    smoke and paper keep DeMoN's design. Each row of the cpu_departures study at the cpu scale turns
+    off exactly the prior its name says (without flow1's prior, dm1 reads RANSAC of flow1's own flow),
+    row demon all four, and row profile is the cpu profile itself."""
     from demon_lab.pipeline.schema import PRIOR_KEYS
     from demon_lab.pipeline.stages.schedule import build_chain
 
     spec = yaml.safe_load((resources.STUDIES / "cpu_departures.yaml").read_text())
-    four = {"flow1_prior": "dis", "dm1_prior": "ransac", "flow2_prior": "previous", "dm2_prior": "previous"}
+    four = {"flow1_prior": "dis_x2", "dm1_prior": "ransac_prior", "flow2_prior": "previous", "dm2_prior": "previous"}
     assert set(PRIOR_KEYS) == set(four)
     with initialize_config_dir(CONF, version_base="1.3"):
-        for scale in ("smoke", "cpu", "paper"):
-            assert all(compose("config", [f"scale={scale}"]).model[k] is None for k in four)
+        for scale in ("smoke", "paper"):
+            cfg = compose("config", [f"scale={scale}"])
+            assert all(cfg.model[k] is None for k in four) and cfg.trainer.reuse_frozen is False
+        cpu = compose("config", ["scale=cpu"])
+        assert {k: cpu.model[k] for k in four} == four and cpu.trainer.reuse_frozen is True
         rows = {}
         for run in spec["runs"]:
             cfg = compose("config", ["scale=cpu", *run])
             rows[cfg.row] = {k: cfg.model[k] for k in four}
     assert rows["profile"] == four and rows["demon"] == dict.fromkeys(four)
-    for key in four:
+    assert rows["no_flow1_prior"] == {**four, "flow1_prior": None, "dm1_prior": "ransac"}
+    for key in ("dm1_prior", "flow2_prior", "dm2_prior"):
         assert rows[f"no_{key}"] == {**four, key: None}
     with initialize_config_dir(CONF, version_base="1.3"):
         chain = build_chain(compose("config", ["scale=cpu", *spec["runs"][0]]))
