@@ -266,3 +266,67 @@ def test_a_report_redraws_only_its_own_figures(tmp_path):
     assert [p.name for p in study_figures(tmp_path, "gt_flow_oracle")] == names[:2]
     assert [p.name for p in study_figures(tmp_path, "gt_flow_oracle_long")] == names[2:4]
     assert [p.name for p in study_figures(tmp_path, "iterations")] == names[4:]
+
+
+def test_a_run_archive_carries_a_study_to_another_store_and_imports_once(tmp_path, capsys):
+    """--export writes the study's ended runs (the unfinished one left out), their stage runs' full
+    histories, their artifacts and the stage run of another experiment that a job read from the
+    cache; --import into an empty store gives the same report, keeps times, histories and the
+    parent of each stage run, and importing again adds nothing."""
+    import json
+
+    from mlflow.tracking import MlflowClient
+
+    from demon_lab.reporting.archive import IMPORTED_FROM, PARENT
+
+    uri = _fake_store(tmp_path)
+    tracker = Tracker(uri, "study", str(tmp_path / "artifacts"))
+    job = tracker.start("a-0-stages", {f"{TAG}run_key": "a0-stages", f"{TAG}row": "c", f"{TAG}seed": "0",
+                                       **version_tags()})
+    stage = tracker.start("flow1", {f"{TAG}kind": "stage", f"{TAG}stage": "flow1", f"{TAG}stage_key": "k1"},
+                          parent_id=job)
+    for step in range(3):
+        tracker.log_metrics(stage, {"val/setA/epe": 1.0 / (step + 1)}, step=step)
+    tracker.finish(stage, "FINISHED")
+    other = Tracker(uri, "elsewhere", str(tmp_path / "artifacts"))
+    cached = other.start("dm1", {f"{TAG}kind": "stage", f"{TAG}stage": "dm1", f"{TAG}stage_key": "k2"})
+    tracker.log_metrics(cached, {"loss": 0.5})
+    tracker.finish(cached, "FINISHED")
+    other.start("dm1", {f"{TAG}kind": "stage", f"{TAG}stage": "dm1", f"{TAG}stage_key": "k3"})  # not read by a job
+    tracker.log_text(job, json.dumps({"flow1": {"key": "k1"}, "dm1": {"key": "k2"}}), "stage_keys.json")
+    tracker.log_metrics(job, {"test/setA/it0/l1_inv": 5.0, "test/setA/it0/tran_deg": 50.0})
+    tracker.finish(job, "FINISHED")
+    tracker.start("running", {f"{TAG}run_key": "r", f"{TAG}row": "a", f"{TAG}seed": "0", **version_tags()})
+    _spec(tmp_path)
+    archive = tmp_path / "runs" / "study.zip"
+    assert report.main(["study", "--studies", str(tmp_path), "--tracking-uri", uri, "--out",
+                        str(tmp_path / "before"), "--export", str(archive)]) == 0
+    assert f"{archive}: 14 runs of study" in capsys.readouterr().out  # 12 jobs, the stage, the cached stage
+
+    copy = f"sqlite:///{tmp_path}/copy.db"
+    argv = ["study", "--studies", str(tmp_path), "--tracking-uri", copy, "--artifact-dir", str(tmp_path / "copied"),
+            "--import", str(archive), "--out", str(tmp_path / "after")]
+    assert report.main(argv) == 0
+    assert f"{archive}: 14 runs imported, 0 already in the store" in capsys.readouterr().out
+    assert report.main(argv) == 0
+    assert f"{archive}: 0 runs imported, 14 already in the store" in capsys.readouterr().out
+
+    source, client = MlflowClient(tracking_uri=uri), MlflowClient(tracking_uri=copy)
+    runs = {r.data.tags[IMPORTED_FROM]: r for e in client.search_experiments()
+            for r in client.search_runs([e.experiment_id])}
+    assert len(runs) == 14 and {job, stage, cached} <= set(runs)
+    after = (tmp_path / "after" / "study.md").read_text()
+    for old, new in runs.items():  # (the report names a FAILED run by its id in the store)
+        after = after.replace(new.info.run_id, old)
+    before = (tmp_path / "before" / "study.md").read_text()
+    assert after == before and "| row a | 3 | 2.000 ± 2.484 |" in before and "- FAILED run" in before
+    assert runs[stage].data.tags[PARENT] == runs[job].info.run_id and PARENT not in runs[cached].data.tags
+    assert client.get_experiment(runs[cached].info.experiment_id).name == "elsewhere"
+    assert [(m.step, m.value) for m in client.get_metric_history(runs[stage].info.run_id, "val/setA/epe")] == [
+        (0, 1.0), (1, 0.5), (2, 1.0 / 3)]
+    for old, new in runs.items():
+        was = source.get_run(old).info
+        assert (new.info.status, new.info.start_time, new.info.end_time) == (was.status, was.start_time, was.end_time)
+    keys = client.download_artifacts(runs[job].info.run_id, "stage_keys.json", str(tmp_path / "down"))
+    assert json.loads(Path(keys).read_text())["dm1"] == {"key": "k2"}
+    assert Path(runs[job].info.artifact_uri.removeprefix("file://")).is_relative_to(tmp_path / "copied")

@@ -14,6 +14,8 @@ their job, or their row and seed, has a newer FINISHED run) and seeds without a 
 the ``--override KEY=VALUE`` options added; a spec's ``requires`` (``KEY: PLACEHOLDER``) names the
 keys a user must pass so (a study on files the user supplies: ``released_model``).
 :func:`publish` logs a study's report as artifacts of a run (a sweep's parent run).
+``--import FILE`` first adds a run archive's runs to the store and ``--export FILE`` writes the named
+studies' runs to one (:mod:`demon_lab.reporting.archive`).
 
 The runs come from ``mlflow.search_runs`` as one DataFrame (``run_id``, ``status``,
 ``start_time``, ``artifact_uri``, ``tags.*``, ``params.*``, ``metrics.*``); rows are picked by
@@ -493,13 +495,29 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--run", action="store_true", help="first run the spec's jobs that MLflow lacks")
     parser.add_argument("--override", action="append", default=[], metavar="KEY=VALUE",
                         help="with --run: an override added to every command (e.g. data.root=DIR); repeatable")
+    parser.add_argument("--import", dest="imports", action="append", default=[], type=Path, metavar="FILE",
+                        help="first add a run archive's runs to the store (repeatable; runs there already are skipped)")
+    parser.add_argument("--export", type=Path, metavar="FILE",
+                        help="last write the named studies' runs to a run archive (a zip file)")
     parser.add_argument("--tracking-uri", default=os.environ.get("MLFLOW_TRACKING_URI", "sqlite:///mlflow.db"))
+    parser.add_argument("--artifact-dir", default="mlartifacts",
+                        help="with --import, a local store: where imported artifacts go (tracking.artifact_dir)")
     parser.add_argument("--out", type=Path, default=Path("reports"))
     parser.add_argument("--studies", type=Path, default=STUDIES, help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     names = sorted(p.stem for p in args.studies.glob("*.yaml")) if args.all else list(args.names)
-    if not names:
+    if not names and not args.imports:
         parser.error("name a study spec or pass --all")
+    if args.export and not names:
+        parser.error("--export writes the runs of the studies named")
+    from demon_lab.reporting.archive import export_runs, import_runs
+
+    for archive in args.imports:
+        if not archive.is_file():
+            print(f"error: --import {archive}: no such file", file=sys.stderr)
+            return 2
+        added, there = import_runs(args.tracking_uri, archive, args.artifact_dir)
+        print(f"[demon_lab.report] {archive}: {added} runs imported, {there} already in the store", flush=True)
     status = 0
     for name in names:
         try:
@@ -510,5 +528,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             print(f"error: {e}", file=sys.stderr)
             return 2
         print(f"[demon_lab.report] {name}: " + ", ".join(str(p) for p in paths.values()), flush=True)
+    if args.export:
+        experiments = sorted({t["experiment"] for name in names for t in load_spec(name, args.studies)["tables"]})
+        count = export_runs(args.tracking_uri, experiments, args.export)
+        print(f"[demon_lab.report] {args.export}: {count} runs of {', '.join(experiments)}", flush=True)
     return status
 
