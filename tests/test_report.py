@@ -294,6 +294,8 @@ def test_a_run_archive_carries_a_study_to_another_store_and_imports_once(tmp_pat
     tracker.finish(cached, "FINISHED")
     other.start("dm1", {f"{TAG}kind": "stage", f"{TAG}stage": "dm1", f"{TAG}stage_key": "k3"})  # not read by a job
     tracker.log_text(job, json.dumps({"flow1": {"key": "k1"}, "dm1": {"key": "k2"}}), "stage_keys.json")
+    for name in ("images/panel.png", "point_clouds/cloud.ply", "report/study.md"):
+        tracker.log_text(job, name, name)
     tracker.log_metrics(job, {"test/setA/it0/l1_inv": 5.0, "test/setA/it0/tran_deg": 50.0})
     tracker.finish(job, "FINISHED")
     tracker.start("running", {f"{TAG}run_key": "r", f"{TAG}row": "a", f"{TAG}seed": "0", **version_tags()})
@@ -302,6 +304,16 @@ def test_a_run_archive_carries_a_study_to_another_store_and_imports_once(tmp_pat
     assert report.main(["study", "--studies", str(tmp_path), "--tracking-uri", uri, "--out",
                         str(tmp_path / "before"), "--export", str(archive)]) == 0
     assert f"{archive}: 14 runs of study" in capsys.readouterr().out  # 12 jobs, the stage, the cached stage
+    import zipfile
+
+    def files(path: Path) -> set[str]:
+        return {name.split("/", 2)[2] for name in zipfile.ZipFile(path).namelist() if name.startswith(f"artifacts/{job}/")}
+
+    assert files(archive) == {"stage_keys.json", "images/panel.png"}
+    lean = tmp_path / "runs" / "lean.zip"
+    assert report.main(["study", "--studies", str(tmp_path), "--tracking-uri", uri, "--out", str(tmp_path / "lean"),
+                        "--export", str(lean), "--without-images"]) == 0
+    assert files(lean) == {"stage_keys.json"}
 
     copy = f"sqlite:///{tmp_path}/copy.db"
     argv = ["study", "--studies", str(tmp_path), "--tracking-uri", copy, "--artifact-dir", str(tmp_path / "copied"),

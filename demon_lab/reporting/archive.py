@@ -7,7 +7,8 @@ another store (docs/results.md, "Run archives").
 
 An archive is a zip file: ``runs.json`` (per run: its experiment's name, run name, status, start and
 end times, tags, params and every metric's full history with steps and timestamps) and
-``artifacts/<run id>/...`` (the run's artifacts but its point clouds, which no report reads). It holds
+``artifacts/<run id>/...`` (the run's artifacts but its point clouds and a sweep's report, which no report
+reads, and, with ``images=False``, but its depth panels: what the tables and histograms read stays). It holds
 the FINISHED, FAILED and KILLED runs of the named experiments, every stage run among them included, and
 the stage runs of other experiments whose trained stages a job of them read from the stage cache
 (a job's ``stage_keys.json``), so the figures that read a stage's curves find them. Unfinished runs are
@@ -34,8 +35,11 @@ from demon_lab.pipeline.tracking import TAG, Tracker, _quiet_mlflow
 IMPORTED_FROM = f"{TAG}imported_from"
 PARENT = "mlflow.parentRunId"
 ENDED = ("FINISHED", "FAILED", "KILLED")
-LEFT_OUT = ("point_clouds",)
-"""Artifact folders an archive leaves out (3-D viewer files: large, and no report reads them)."""
+LEFT_OUT = ("point_clouds", "report")
+"""Artifact folders an archive leaves out: 3-D viewer files and the report a sweep logs on its parent run
+(large, and no report reads them)."""
+IMAGES = "images"
+"""The depth panels of a job (the qualitative figures read them): ``images=False`` leaves them out."""
 BATCH_METRICS, BATCH_PARAMS = 1000, 100  # MLflow's limits per log_batch call
 
 
@@ -74,9 +78,10 @@ def _stage_keys(client, run_id: str, into: Path) -> list[str]:
     return [entry["key"] for entry in json.loads(Path(path).read_text()).values() if entry.get("key")]
 
 
-def export_runs(uri: str, experiments: Sequence[str], path: Path) -> int:
-    """Writes the archive of ``experiments``' ended runs (and the stage runs they read) to ``path``;
-    returns the number of runs written."""
+def export_runs(uri: str, experiments: Sequence[str], path: Path, images: bool = True) -> int:
+    """Writes the archive of ``experiments``' ended runs (and the stage runs they read) to ``path``,
+    with each job's depth panels if ``images``; returns the number of runs written."""
+    left_out = LEFT_OUT if images else (*LEFT_OUT, IMAGES)
     client = _client(uri)
     names = {e.experiment_id: e.name for e in client.search_experiments()}
     wanted = [i for i, name in names.items() if name in experiments]
@@ -97,7 +102,7 @@ def export_runs(uri: str, experiments: Sequence[str], path: Path) -> int:
                 local = Path(tmp) / "artifacts" / run_id
                 local.mkdir(parents=True)
                 for item in client.list_artifacts(run_id):
-                    if item.path not in LEFT_OUT:
+                    if item.path not in left_out:
                         client.download_artifacts(run_id, item.path, str(local))
                 for file in sorted(p for p in local.rglob("*") if p.is_file()):
                     archive.write(file, f"artifacts/{run_id}/{file.relative_to(local).as_posix()}")

@@ -499,6 +499,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                         help="first add a run archive's runs to the store (repeatable; runs there already are skipped)")
     parser.add_argument("--export", type=Path, metavar="FILE",
                         help="last write the named studies' runs to a run archive (a zip file)")
+    parser.add_argument("--without-images", action="store_true",
+                        help="with --export: leave out the jobs' depth panels (the qualitative figures' input)")
     parser.add_argument("--tracking-uri", default=os.environ.get("MLFLOW_TRACKING_URI", "sqlite:///mlflow.db"))
     parser.add_argument("--artifact-dir", default="mlartifacts",
                         help="with --import, a local store: where imported artifacts go (tracking.artifact_dir)")
@@ -530,7 +532,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"[demon_lab.report] {name}: " + ", ".join(str(p) for p in paths.values()), flush=True)
     if args.export:
         experiments = sorted({t["experiment"] for name in names for t in load_spec(name, args.studies)["tables"]})
-        count = export_runs(args.tracking_uri, experiments, args.export)
+        count = export_runs(args.tracking_uri, experiments, args.export, images=not args.without_images)
         print(f"[demon_lab.report] {args.export}: {count} runs of {', '.join(experiments)}", flush=True)
     return status
 
