@@ -307,7 +307,8 @@ def test_a_run_archive_carries_a_study_to_another_store_and_imports_once(tmp_pat
     import zipfile
 
     def files(path: Path) -> set[str]:
-        return {name.split("/", 2)[2] for name in zipfile.ZipFile(path).namelist() if name.startswith(f"artifacts/{job}/")}
+        names = zipfile.ZipFile(path).namelist()
+        return {name.split("/", 2)[2] for name in names if name.startswith(f"artifacts/{job}/")}
 
     assert files(archive) == {"stage_keys.json", "images/panel.png"}
     lean = tmp_path / "runs" / "lean.zip"
@@ -342,3 +343,36 @@ def test_a_run_archive_carries_a_study_to_another_store_and_imports_once(tmp_pat
     keys = client.download_artifacts(runs[job].info.run_id, "stage_keys.json", str(tmp_path / "down"))
     assert json.loads(Path(keys).read_text())["dm1"] == {"key": "k2"}
     assert Path(runs[job].info.artifact_uri.removeprefix("file://")).is_relative_to(tmp_path / "copied")
+
+
+def test_an_archive_that_went_round_two_stores_adds_nothing_and_a_late_parent_is_linked(tmp_path, capsys):
+    """A store's runs exported to a second store and back add nothing to the first; a stage run
+    exported while its job still ran arrives without a parent, and the import that later brings the
+    finished job links them."""
+    from mlflow.tracking import MlflowClient
+
+    from demon_lab.reporting.archive import IMPORTED_FROM, PARENT, export_runs, import_runs
+
+    first, second = f"sqlite:///{tmp_path}/a.db", f"sqlite:///{tmp_path}/b.db"
+    tracker = Tracker(first, "study", str(tmp_path / "a"))
+    done = tracker.start("a-0", {f"{TAG}run_key": "a0", f"{TAG}row": "a", f"{TAG}seed": "0", **version_tags()})
+    tracker.finish(done, "FINISHED")
+    job = tracker.start("b-0", {f"{TAG}run_key": "b0", f"{TAG}row": "b", f"{TAG}seed": "0", **version_tags()})
+    stage = tracker.start("flow1", {f"{TAG}kind": "stage", f"{TAG}stage": "flow1"}, parent_id=job)
+    tracker.finish(stage, "FINISHED")
+    export_runs(first, ["study"], tmp_path / "early.zip")  # the job still runs: left out
+    assert import_runs(second, tmp_path / "early.zip", tmp_path / "b") == (2, 0)
+    back = tmp_path / "back.zip"
+    export_runs(second, ["study"], back)
+    assert import_runs(first, back, tmp_path / "a") == (0, 2)  # both are the first store's own runs
+
+    client = MlflowClient(tracking_uri=second)
+    runs = lambda: {r.data.tags[IMPORTED_FROM]: r for r in client.search_runs(  # noqa: E731
+        [client.get_experiment_by_name("study").experiment_id])}
+    assert PARENT not in runs()[stage].data.tags
+    tracker.finish(job, "FINISHED")
+    export_runs(first, ["study"], tmp_path / "late.zip")
+    assert import_runs(second, tmp_path / "late.zip", tmp_path / "b") == (1, 2)
+    linked = runs()
+    assert linked[stage].data.tags[PARENT] == linked[job].info.run_id
+    assert linked[job].data.tags[f"{TAG}run_key"] == "b0"

@@ -15,10 +15,14 @@ the stage runs of other experiments whose trained stages a job of them read from
 left out: they are resumable only beside the stage cache they checkpoint into.
 
 Importing keeps each run's times, tags and histories; the run gets a new id in the store and the tag
-``demon_lab.imported_from`` with its id in the archive, a child run's ``mlflow.parentRunId`` points
-at its parent's new id, and a run already in the store (same id, or imported before) is skipped, so
-importing twice adds nothing. A job finds an imported FINISHED run of its run key and skips, as it
-would its own.
+``demon_lab.imported_from`` with the id it was first tracked under, a child run's
+``mlflow.parentRunId`` points at its parent's new id (or, while the parent is in no store the import
+has seen, ``demon_lab.imported_parent`` names it, and the import that brings the parent links them),
+and a run already in the store (same id, or imported before, from any archive) is skipped, so
+importing twice, or an archive that went round two stores, adds nothing. A run gets its run key and
+``imported_from`` last, just before it ends: an import stopped half-way leaves a RUNNING run that no
+job resumes and no report reads, and the next import brings that run again. A job finds an imported
+FINISHED run of its run key and skips, as it would its own.
 """
 
 from __future__ import annotations
@@ -33,6 +37,8 @@ from typing import Any
 from demon_lab.pipeline.tracking import TAG, Tracker, _quiet_mlflow
 
 IMPORTED_FROM = f"{TAG}imported_from"
+IMPORTED_PARENT = f"{TAG}imported_parent"
+RUN_KEY = f"{TAG}run_key"
 PARENT = "mlflow.parentRunId"
 ENDED = ("FINISHED", "FAILED", "KILLED")
 LEFT_OUT = ("point_clouds", "report")
@@ -48,6 +54,17 @@ def _client(uri: str):
     from mlflow.tracking import MlflowClient
 
     return MlflowClient(tracking_uri=uri)
+
+
+def _experiments(client) -> dict[str, str]:
+    """Every experiment of the store: id -> name, page by page."""
+    found, token = {}, None
+    while True:
+        page = client.search_experiments(max_results=1000, page_token=token)
+        found.update({e.experiment_id: e.name for e in page})
+        token = page.token
+        if not token:
+            return found
 
 
 def _search(client, experiment_ids: Sequence[str], query: str = "") -> Iterator[Any]:
@@ -71,10 +88,14 @@ def _record(client, run, experiment: str) -> dict[str, Any]:
 
 def _stage_keys(client, run_id: str, into: Path) -> list[str]:
     """The stage keys a job read or trained (its ``stage_keys.json``), or none."""
+    from mlflow.exceptions import MlflowException
+
+    if not any(item.path == "stage_keys.json" for item in client.list_artifacts(run_id)):
+        return []  # a baseline, a stage run, a sweep
     try:
         path = client.download_artifacts(run_id, "stage_keys.json", str(into))
-    except Exception:  # no such artifact (a baseline, a stage run)
-        return []
+    except (OSError, MlflowException) as e:
+        raise OSError(f"run {run_id}: cannot read its stage_keys.json ({e})") from None
     return [entry["key"] for entry in json.loads(Path(path).read_text()).values() if entry.get("key")]
 
 
@@ -83,7 +104,7 @@ def export_runs(uri: str, experiments: Sequence[str], path: Path, images: bool =
     with each job's depth panels if ``images``; returns the number of runs written."""
     left_out = LEFT_OUT if images else (*LEFT_OUT, IMAGES)
     client = _client(uri)
-    names = {e.experiment_id: e.name for e in client.search_experiments()}
+    names = _experiments(client)
     wanted = [i for i, name in names.items() if name in experiments]
     runs = {r.info.run_id: r for r in _search(client, wanted) if r.info.status in ENDED}
     path = Path(path)
@@ -127,23 +148,29 @@ def import_runs(uri: str, path: Path, artifact_dir: str | Path = "mlartifacts") 
     with zipfile.ZipFile(path) as archive, tempfile.TemporaryDirectory(prefix="demon_lab_import_") as tmp:
         records = _parents_first(json.loads(archive.read("runs.json")))
         client = _client(uri)
-        present: dict[str, str] = {}
-        for run in _search(client, [e.experiment_id for e in client.search_experiments()]):
+        present: dict[str, str] = {}  # an id a run was tracked under (here or in an archive) -> its id here
+        for run in _search(client, list(_experiments(client))):
             present[run.info.run_id] = run.info.run_id
             if IMPORTED_FROM in run.data.tags:
                 present[run.data.tags[IMPORTED_FROM]] = run.info.run_id
         experiments: dict[str, str] = {}
         imported = 0
         for record in records:
-            old = record["run_id"]
-            if old in present:
+            old, tags = record["run_id"], dict(record["tags"])
+            origin = tags.pop(IMPORTED_FROM, old)
+            if old in present or origin in present:
+                present.setdefault(old, present.get(origin, present.get(old)))
                 continue
             if record["experiment"] not in experiments:
                 experiments[record["experiment"]] = Tracker(uri, record["experiment"], artifact_dir).experiment_id
-            tags = {k: v for k, v in record["tags"].items() if k not in (PARENT, "mlflow.runName")}
-            tags[IMPORTED_FROM] = old
-            if record["tags"].get(PARENT) in present:
-                tags[PARENT] = present[record["tags"][PARENT]]
+            last = {IMPORTED_FROM: origin, **({RUN_KEY: tags.pop(RUN_KEY)} if RUN_KEY in tags else {})}
+            parent = tags.pop(PARENT, None) or tags.get(IMPORTED_PARENT)
+            tags.pop("mlflow.runName", None)
+            tags.pop(IMPORTED_PARENT, None)
+            if parent in present:
+                tags[PARENT] = present[parent]
+            elif parent:
+                tags[IMPORTED_PARENT] = parent
             run_id = client.create_run(experiments[record["experiment"]], start_time=record["start_time"],
                                        tags=tags, run_name=record["name"]).info.run_id
             params = [Param(k, v) for k, v in record["params"].items()]
@@ -158,7 +185,13 @@ def import_runs(uri: str, path: Path, artifact_dir: str | Path = "mlartifacts") 
             if members:
                 archive.extractall(tmp, members)
                 client.log_artifacts(run_id, str(Path(tmp) / prefix))
+            for key, value in last.items():
+                client.set_tag(run_id, key, value)
             client.set_terminated(run_id, status=record["status"], end_time=record["end_time"])
-            present[old] = run_id
+            present[old] = present[origin] = run_id
             imported += 1
+        for run in _search(client, list(_experiments(client)), f"tags.`{IMPORTED_PARENT}` != ''"):
+            if PARENT not in run.data.tags and run.data.tags[IMPORTED_PARENT] in present:
+                client.set_tag(run.info.run_id, PARENT, present[run.data.tags[IMPORTED_PARENT]])
+                client.delete_tag(run.info.run_id, IMPORTED_PARENT)
         return imported, len(records) - imported
