@@ -11,7 +11,7 @@ import pytest
 import torch
 from conftest import random_scene
 from omegaconf import open_dict
-from test_pipeline import client, compose_config, smoke_overrides
+from test_pipeline import DEMON_DESIGN, client, compose_config, smoke_overrides
 
 from demon_lab.core import execution, losses
 from demon_lab.core import geometry as geo
@@ -315,8 +315,11 @@ def test_the_evaluation_device_follows_the_training_accelerator(tmp_path, caplog
 
 
 GOLDEN = {  # the keys these configurations had before precision, channels-last and compile existed
-    (): ("2907aa5b1f5f6ccc", ["3dd138c21ef927e2", "1fca1025f3da4572", "54995bd435165a57", "ad9248f256cc5ae1",
-                              "0f277acf9143285f", "11d045c2fab422bf"]),
+    DEMON_DESIGN: ("2907aa5b1f5f6ccc", ["3dd138c21ef927e2", "1fca1025f3da4572", "54995bd435165a57",
+                                        "ad9248f256cc5ae1", "0f277acf9143285f", "11d045c2fab422bf"]),
+    # the cpu profile with its four priors (CHANGELOG: every key of the cpu scale's chain changed with them)
+    (): ("b3e49a491ddd875d", ["4fece5ce0aac4f5e", "e8cfb0b0d6d805c0", "5819b46d56b48364", "2c873cbbbd55e7f2",
+                              "e6262b4cde5c75c0", "862513d583e42a48"]),
     ("scale=paper",): ("b01069ad9b5a53e9", ["2dc7c6d575068f58", "eab06ec47ffda056", "fcff31279bd656ec",
                                             "bce9080cff5cd55a", "ad5b1a5caad91d32", "a301ba0f14d4e8c8"]),
 }
