@@ -126,7 +126,8 @@ def test_stage_runs_record_their_loss_curves(smoke_run):
 def test_time_to_accuracy_figure_reads_the_flow1_stage_of_each_counted_run(smoke_run, tmp_path, monkeypatch):
     """The figure plots each counted run's flow1 held-apart curve (EPE / zero-flow EPE) against the
     minutes since its stage run started: the values and times of the stage run's metric history; a run
-    whose flow1 came from the cache is found through its stage key."""
+    whose flow1 came from the cache is found through its stage key; rows reading the same flow1 stages
+    share one line, labelled with both."""
     import shutil
 
     import yaml
@@ -139,7 +140,8 @@ def test_time_to_accuracy_figure_reads_the_flow1_stage_of_each_counted_run(smoke
     spec = {"title": "t", "runs": [], "seeds": [0], "datasets": {"synthetic_sun3d": None},
             "figures": ["time_to_accuracy"],
             "tables": [{"name": "flow1", "caption": "c", "experiment": "default", "columns": ["epe"],
-                        "rows": [{"label": "smoke", "match": {}, "metrics": "it0"}]}]}
+                        "rows": [{"label": "smoke", "match": {}, "metrics": "it0"},
+                                 {"label": "twin", "match": {}, "metrics": "it0"}]}]}
     (tmp_path / "tta.yaml").write_text(yaml.safe_dump(spec))
     drawn = []
     import matplotlib.axes
@@ -147,13 +149,15 @@ def test_time_to_accuracy_figure_reads_the_flow1_stage_of_each_counted_run(smoke
     original = matplotlib.axes.Axes.plot
 
     def plot(self, *args, **kwargs):
-        drawn.append((list(args[0]), list(args[1])) if len(args) >= 2 and kwargs.get("label") == "smoke" else None)
+        if kwargs.get("label"):
+            drawn.append((kwargs["label"], list(args[0]), list(args[1])))
         return original(self, *args, **kwargs)
 
     monkeypatch.setattr(matplotlib.axes.Axes, "plot", plot)
     paths = report.report("tta", uri, tmp_path / "out", tmp_path)
     assert (tmp_path / "out" / "figures" / "tta_time_to_accuracy.png") in paths.values()
-    (minutes, ratios), = [d for d in drawn if d]
+    (label, minutes, ratios), = drawn
+    assert label == "smoke; twin"
     c = client(tmp)
     stage = figures.flow1_stage_run(c, {"run_id": result["run_id"],
                                                "experiment_id": c.get_run(result["run_id"]).info.experiment_id})

@@ -238,20 +238,25 @@ def flow1_stage_run(client, run: Mapping[str, Any]):
 def figure_time_to_accuracy(spec, result, uri: str, path: Path, dataset: str = "synthetic_sun3d") -> list[Path]:
     """The held-apart EPE of each row's ``flow1`` (``val/<dataset>/epe`` as a multiple of that set's
     zero-flow EPE, logged by the stage every ``tracking.val_every_n_steps``) against the minutes since
-    its stage run started, one line per seed: how soon each design leaves the zero-flow plateau."""
+    its stage run started, one line per seed (rows whose jobs read the same flow1 stages share them): how
+    soon each design leaves the zero-flow plateau."""
     import matplotlib.pyplot as plt
     from mlflow.tracking import MlflowClient
 
     client = MlflowClient(tracking_uri=uri)
     table = spec["tables"][0]
+    # rows whose jobs read the same flow1 stages (a departure after flow1) share one set of lines
+    groups: dict[tuple[str, ...], tuple[list[str], list]] = {}
+    for label, runs in _counted(result, table):
+        stages = [s for s in (flow1_stage_run(client, run) for _, run in runs.sort_values("seed").iterrows())
+                  if s is not None]
+        if stages:
+            groups.setdefault(tuple(s.info.run_id for s in stages), ([], stages))[0].append(label)
     fig, ax = plt.subplots(figsize=(7.5, 4.2))
     colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
     drawn = 0
-    for k, (label, runs) in enumerate(_counted(result, table)):
-        for n, (_, run) in enumerate(runs.sort_values("seed").iterrows()):
-            stage = flow1_stage_run(client, run)
-            if stage is None:
-                continue
+    for k, (labels, stages) in enumerate(groups.values()):
+        for n, stage in enumerate(stages):
             history = client.get_metric_history(stage.info.run_id, f"val/{dataset}/epe")
             zero = client.get_metric_history(stage.info.run_id, f"val/{dataset}/zero_flow_epe")
             if not history or not zero:
@@ -259,7 +264,7 @@ def figure_time_to_accuracy(spec, result, uri: str, path: Path, dataset: str = "
             points = sorted((m.timestamp, m.value) for m in history)
             minutes = [(t - stage.info.start_time) / 60000 for t, _ in points]
             ax.plot(minutes, [v / zero[0].value for _, v in points], color=colours[k % len(colours)], lw=1.2,
-                    marker="o", ms=2, label=label if n == 0 else None)
+                    marker="o", ms=2, label="; ".join(labels) if n == 0 else None)
             drawn += 1
     if not drawn:
         plt.close(fig)
@@ -267,8 +272,9 @@ def figure_time_to_accuracy(spec, result, uri: str, path: Path, dataset: str = "
     ax.axhline(1.0, color="k", lw=0.8, ls=":")
     ax.axhline(0.5, color="k", lw=0.8, ls="--")
     ax.set_xlabel("wall-clock minutes of the flow1 stage (held-apart scoring included)")
-    ax.set_ylabel(f"held-apart EPE / zero-flow EPE ({dataset} validation scenes)")
+    ax.set_ylabel("held-apart EPE / zero-flow EPE")
     ax.grid(alpha=0.3)
     ax.legend(fontsize=6)
-    fig.suptitle(f"{spec['title']}: flow1's held-apart EPE against time, one line per seed", fontsize=9)
+    fig.suptitle(f"{spec['title']}\nflow1's held-apart EPE on {dataset}'s validation scenes against time, "
+                 "one line per seed (rows that share flow1 share lines)", fontsize=8)
     return [_save(fig, path / f"{spec['name']}_time_to_accuracy.png")]
