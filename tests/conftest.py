@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import os
 import socket
 
 import numpy as np
@@ -12,6 +13,24 @@ import torch
 from demon_lab.resources import DATA
 
 SUN3D_PAIR = DATA / "sun3d_train_0.1m_to_0.2m_00000"
+
+
+def pytest_configure(config):
+    """Under pytest-xdist each worker, and every job it starts, gets an equal share of the cores.
+
+    Workers that each open a thread pool as wide as the machine oversubscribe it: torch's OpenMP
+    threads spin while they wait for each other, and a training test runs several times slower.
+    The share reaches the jobs a test starts through the variables torch and OpenCV read at start-up
+    (a variable the user set wins); a job's ``threads`` override still wins over both.
+    """
+    workers = os.environ.get("PYTEST_XDIST_WORKER_COUNT")
+    if not workers:
+        return
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+    share = str(max(1, cores // int(workers)))
+    for variable in ("OMP_NUM_THREADS", "OPENCV_FOR_THREADS_NUM"):
+        os.environ.setdefault(variable, share)
+    torch.set_num_threads(int(os.environ["OMP_NUM_THREADS"]))
 
 CUDA = pytest.param("cuda", id="cuda", marks=[pytest.mark.cuda, pytest.mark.skipif(
     not torch.cuda.is_available(), reason="no CUDA device on this machine: the cuda cases run on a GPU "

@@ -739,7 +739,7 @@ def test_times_resolver_takes_integers_only():
 def test_killed_training_stage_resumes_from_its_checkpoint(tmp_path):
     """A real job is killed (SIGKILL) mid-stage; the same command resumes from the stage's last
     checkpoint instead of starting over."""
-    args = smoke_overrides(tmp_path, "scale.steps.flow1=400", "schedule.until=flow1", "iterations=0",
+    args = smoke_overrides(tmp_path, "scale.steps.flow1=100", "schedule.until=flow1", "iterations=0",
                            "scale.checkpoint_every=5",
                            "eval.max_samples=1")
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
@@ -761,7 +761,7 @@ def test_killed_training_stage_resumes_from_its_checkpoint(tmp_path):
     import torch
 
     step_at_kill = torch.load(checkpoints[0], map_location="cpu", weights_only=False)["global_step"]
-    assert 0 < step_at_kill < 400
+    assert 0 < step_at_kill < 100
     from demon_lab.app.job import run
 
     result = run(compose_config(args))
@@ -770,8 +770,8 @@ def test_killed_training_stage_resumes_from_its_checkpoint(tmp_path):
     # the stage resumed from the checkpoint (at the kill step or a later one written just before
     # the kill) and ran only the remaining steps
     figures = result["figures"]["flow1"]
-    assert step_at_kill <= figures["resumed_from_step"] < 400
-    assert torch.load(checkpoints[0], map_location="cpu", weights_only=False)["global_step"] == 400
+    assert step_at_kill <= figures["resumed_from_step"] < 100
+    assert torch.load(checkpoints[0], map_location="cpu", weights_only=False)["global_step"] == 100
     c = client(tmp_path)
     statuses = [r.info.status for r in c.search_runs([c.get_experiment_by_name("default").experiment_id])]
     assert "FINISHED" in statuses

@@ -93,8 +93,8 @@ def _metrics(tmp: Path) -> tuple[str, str, dict[str, float]]:
 
 KILL_POINTS = {
     # name: (overrides, what to wait for: a checkpoint glob or a line the job prints)
-    "flow1 training": (["scale.steps.flow1=150", "schedule.until=flow1", "iterations=0"], "flow1-*/last.ckpt"),
-    "iterative training": (["scale.steps.iterative=80", "schedule.until=iterative"], "iterative-*/last.ckpt"),
+    "flow1 training": (["scale.steps.flow1=60", "schedule.until=flow1", "iterations=0"], "flow1-*/last.ckpt"),
+    "iterative training": (["scale.steps.iterative=40", "schedule.until=iterative"], "iterative-*/last.ckpt"),
     "evaluation": (["schedule.until=flow1", "iterations=0"], "[demon_lab] evaluating on synthetic_sun3d"),
     # between the test metrics and the artifacts (_HOLD_AFTER_METRICS holds the job there)
     "final logging": (["schedule.until=flow1", "iterations=0"], "[demon_lab] paused at metrics_logged"),
