@@ -4,7 +4,10 @@ from __future__ import annotations
 
 import math
 import os
+import shutil
 import socket
+import tempfile
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -37,6 +40,19 @@ CUDA = pytest.param("cuda", id="cuda", marks=[pytest.mark.cuda, pytest.mark.skip
     "(scripts/device_check.sh runs them there)")])
 DEVICES = ["cpu", CUDA]
 """Device parametrisation: the cpu case everywhere, the cuda case (marker ``cuda``) where a GPU is."""
+
+
+def shared_renders() -> Path:
+    """The render cache that every job the tests run shares (in the test process or a child; one per
+    test process, so one per xdist worker): the smoke scenes are rendered once and read by the jobs
+    after. Where scenes are cached is in no key (``demon_lab.pipeline.identity.RENDER_CACHE``)."""
+    return Path(tempfile.gettempdir()) / f"demon_lab-tests-{os.getpid()}" / "renders"
+
+
+@pytest.fixture(scope="session", autouse=True)
+def _remove_shared_renders():
+    yield
+    shutil.rmtree(shared_renders().parent, ignore_errors=True)
 
 
 def free_port() -> int:

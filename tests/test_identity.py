@@ -60,3 +60,23 @@ def test_sweep_key_drops_non_semantic_overrides_and_keeps_their_order_irrelevant
     assert identity.sweep_key("study", ["+experiment=study", "threads=1", "seed=0,1",
                                         "hydra/launcher=joblib".replace("hydra/", "hydra.")]) == key
     assert identity.sweep_key("other", ["seed=0,1", "+experiment=study"]) != key
+
+
+def test_keys_do_not_depend_on_where_scenes_are_cached(tmp_path):
+    """The render cache's location (``data.cache_dir``, a source's own, or ``false``: no cache) is in no
+    key and no output folder name; the default scales' keys, which hold it as null, are those pinned in
+    tests/test_execution.py."""
+    def keys(*overrides: str) -> tuple[str, list[str]]:
+        cfg = _compose(*overrides)
+        return identity.run_key(cfg), [s.key for s in stage_dirs(cfg)]
+
+    for scale in ("scale=smoke", "scale=cpu", "scale=paper"):
+        base = keys(scale)
+        assert keys(scale, f"data.cache_dir={tmp_path}/renders") == base
+        assert keys(scale, "data.cache_dir=false") == base
+        assert keys(scale, f"cache_dir={tmp_path}") == base  # smoke's data.cache_dir follows cache_dir
+        assert keys(scale, "data.size=[32,32]") != base
+    assert not identity.is_semantic("data.cache_dir") and not identity.is_semantic("data.test.1.cache_dir")
+    assert identity.is_semantic("data.size") and identity.is_semantic("data.path")
+    cfg = _compose(f"data.cache_dir={tmp_path}/renders", "seed=2", hydra=True)
+    assert cfg.hydra.job.override_dirname == "seed=2"

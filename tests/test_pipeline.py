@@ -20,13 +20,16 @@ from hydra import compose, initialize_config_dir
 from demon_lab import resources
 from demon_lab.__main__ import CONF, check
 from demon_lab.pipeline.identity import run_key
+from tests.conftest import shared_renders
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
 def smoke_overrides(tmp: Path, *extra: str) -> list[str]:
+    """A smoke job whose store, artifacts and stage cache lie in ``tmp``; its scenes come from the
+    tests' shared render cache."""
     return ["scale=smoke", f"tracking.uri=sqlite:///{tmp}/mlflow.db", f"tracking.artifact_dir={tmp}/artifacts",
-            f"cache_dir={tmp}/cache", *extra]
+            f"cache_dir={tmp}/cache", f"data.cache_dir={shared_renders()}", *extra]
 
 
 def compose_config(overrides: list[str]):

@@ -5,7 +5,8 @@ scene generator's), so a change that alters results makes older entries stale in
 them:
 
 - run key (:func:`run_key`): a job's resolved configuration without the keys that do not change
-  what it computes (:data:`NON_SEMANTIC`); a FINISHED run with the same key is skipped.
+  what it computes (:data:`NON_SEMANTIC`, and the render cache's location: :data:`RENDER_CACHE`);
+  a FINISHED run with the same key is skipped.
 - stage key (:func:`stage_key`): what determines one training stage's weights (its description,
   chained through the keys of its upstream stages: ``demon_lab.pipeline.stages.schedule.describe_stage``).
 - sweep key (:func:`sweep_key`): a multirun's experiment and its result-changing overrides; the
@@ -44,6 +45,22 @@ whether a stage reads its frozen nets' outputs from a memo (they change floating
 most, as the thread count does), what it draws, which report row it is."""
 
 
+RENDER_CACHE = "data.cache_dir"
+"""Where a job's scenes are cached (``false``: not at all): it does not change what the job computes
+(rendering is deterministic), so :func:`is_semantic` says so, yet the keys keep the ``cache_dir``
+entries of the data config and of each source, written as null (:func:`without_render_cache`): null
+is their default, so the keys written before this rule hold."""
+
+
+def without_render_cache(data: Any) -> Any:
+    """A plain data config (or a source list, or a source) with every ``cache_dir`` written as null."""
+    if isinstance(data, dict):
+        return {k: None if k == "cache_dir" else without_render_cache(v) for k, v in data.items()}
+    if isinstance(data, list):
+        return [without_render_cache(v) for v in data]
+    return data
+
+
 def versions() -> dict[str, int]:
     """What every key includes besides its description: the training code's version and the
     synthetic scene generator's (new scenes make old stages, runs and sweeps stale)."""
@@ -62,6 +79,8 @@ def is_semantic(key: str) -> bool:
     """Whether a dotted config key (or an override's key: ``+a.b``, ``group/option``) changes
     results, i.e. lies outside every :data:`NON_SEMANTIC` subtree."""
     key = key.lstrip("+~").split("=", 1)[0].replace("/", ".")
+    if key.startswith("data.") and key.endswith(".cache_dir"):
+        return False  # RENDER_CACHE, or a source's own (data.train.0.cache_dir)
     return not any(key == k or key.startswith(k + ".") for k in NON_SEMANTIC)
 
 
@@ -109,6 +128,8 @@ def semantic_config(cfg) -> dict[str, Any]:
             node.pop(leaf, None)
     if isinstance(plain.get("model"), dict):
         plain["model"] = model_identity(plain["model"])
+    if isinstance(plain.get("data"), dict):
+        plain["data"] = without_render_cache(plain["data"])
     precision = normalize_precision(plain.pop("precision", 32))
     # left out at its default (the keys from before it existed hold) and for the methods that run no net
     if precision != "32-true" and plain.get("method", "demon") in ("demon", "base_mat_f"):

@@ -15,7 +15,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from demon_lab.core.execution import normalize_precision, prepare_nets
 from demon_lab.nets.chain import DeMoN
-from demon_lab.pipeline.identity import model_identity, stage_key
+from demon_lab.pipeline.identity import model_identity, stage_key, without_render_cache
 from demon_lab.pipeline.schema import ModelSpec, stage_spec
 from demon_lab.pipeline.stages.cache import CheckpointError, StageDir
 
@@ -52,7 +52,7 @@ def describe_stage(cfg: DictConfig, name: str, upstream: dict[str, str]) -> dict
         # (no_normals for the flow stages, say, or no_sig for a flow stage without sig terms)
         # share this stage.
         "loss": {k: float(cfg.loss[k]) for k in spec.weight_keys()},
-        "train_data": plain(cfg.data.train),
+        "train_data": without_render_cache(plain(cfg.data.train)),  # not where its scenes are cached
         "seed": cfg.seed,
         "upstream": dict(upstream),
         # the nets' precision when it is not float32 and the stage trains (left out at 32: the keys from
