@@ -78,20 +78,23 @@ def _listening(port: int) -> bool:
 
 
 @pytest.mark.slow
-def test_local_server_serves_the_command_on_loopback_and_stops(tmp_path):
+@pytest.mark.parametrize("sweep", [[], ["-m", "hydra/launcher=joblib", "seed=0,1"]], ids=["job", "joblib_sweep"])
+def test_local_server_serves_the_command_on_loopback_and_stops(tmp_path, sweep):
+    """One server per command: a job starts its own; a sweep's process starts one and its jobs (in
+    joblib's processes) log through it."""
     port = free_port()
-    args = [*smoke_overrides(tmp_path), "tracking=local_server", f"tracking.server.port={port}",
+    args = [*sweep, *smoke_overrides(tmp_path), "tracking=local_server", f"tracking.server.port={port}",
             f"tracking.server.backend_store_uri=sqlite:///{tmp_path}/mlflow.db",
             "schedule.until=flow1", "iterations=0", "eval.max_samples=1"]
     result = cli(*args, cwd=tmp_path)
     assert result.returncode == 0, result.stderr[-3000:]
-    assert f"MLflow server on http://127.0.0.1:{port}" in result.stdout
+    assert result.stdout.count(f"MLflow server on http://127.0.0.1:{port}") == 1
     assert not _listening(port)  # stopped with the command
     c = client(tmp_path)  # the runs are in the SQLite store behind the server, readable without it
     runs = c.search_runs([c.get_experiment_by_name("default").experiment_id])
-    job = [r for r in runs if "demon_lab.run_key" in r.data.tags]
-    assert len(job) == 1 and job[0].info.status == "FINISHED"
-    assert any(a.path == "config.yaml" for a in c.list_artifacts(job[0].info.run_id))
+    jobs = [r for r in runs if "demon_lab.run_key" in r.data.tags]
+    assert len(jobs) == (2 if sweep else 1) and all(r.info.status == "FINISHED" for r in jobs)
+    assert all(any(a.path == "config.yaml" for a in c.list_artifacts(r.info.run_id)) for r in jobs)
 
 
 @pytest.mark.slow
@@ -115,13 +118,14 @@ def test_launcher_workers_get_no_store_client():
 
     callback = MultirunTracking()
     callback.tracker, callback.parent = object(), "abc"
+    callback.server, callback.served = object(), "http://127.0.0.1:5055"
     copy = pickle.loads(pickle.dumps(callback))
-    assert copy.tracker is None and copy.parent == "abc"
-    assert job._parent_run() is None
+    assert copy.tracker is None and copy.server is None and copy.parent == "abc"
+    assert job._parent_run() is None and job.SWEEP_SERVER.get() is None
     copy.on_job_start(config=None, task_function=job.main_task)
-    assert job._parent_run() == "abc"
+    assert job._parent_run() == "abc" and job.SWEEP_SERVER.get() == "http://127.0.0.1:5055"
     copy.on_job_end(config=None, job_return=None)
-    assert job._parent_run() is None
+    assert job._parent_run() is None and job.SWEEP_SERVER.get() is None
 
 
 

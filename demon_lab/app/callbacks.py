@@ -2,9 +2,10 @@
 
 ``on_multirun_start`` creates the tracking store and the experiment once, before any job starts
 (parallel jobs racing to create a fresh SQLite database is a known MLflow failure), and the parent
-run. ``on_job_start`` hands the parent run id to the job in the job's own process
-(``demon_lab.app.job.PARENT_RUN``; with the joblib and SLURM launchers this callback travels there
-pickled, its parent id with it), and the job tags itself with ``mlflow.parentRunId``. The same sweep
+run; with ``tracking=local_server`` it starts the sweep's one MLflow server. ``on_job_start`` hands
+the parent run id and the server's address to the job in the job's own process
+(``demon_lab.app.job.PARENT_RUN`` and ``SWEEP_SERVER``; with the joblib and SLURM launchers this
+callback travels there pickled, both with it), and the job tags itself with ``mlflow.parentRunId``. The same sweep
 command issued again (after a kill, a failure or a cluster pre-emption) continues the same parent
 run, so its children are every job of the sweep: the finished ones (skipped this time) and the ones
 run now.
@@ -38,6 +39,7 @@ class MultirunTracking(Callback):
         self.parent: str | None = None
         self.failed: list[str] = []  # the folders of this sweep's failed jobs
         self.server = None
+        self.served: str | None = None  # the address of self.server, which travels with the jobs
 
     def __getstate__(self) -> dict[str, Any]:
         """Launchers that run jobs in other processes (joblib, submitit) pickle the callbacks with
@@ -57,8 +59,10 @@ class MultirunTracking(Callback):
             except TrackingError as e:
                 print(f"error: {e}", file=sys.stderr, flush=True)
                 sys.exit(2)
+            self.served = self.server.uri
         try:
-            self.tracker = Tracker(config.tracking.uri, config.experiment, config.tracking.artifact_dir)
+            self.tracker = Tracker(config.tracking.uri, config.experiment, config.tracking.artifact_dir,
+                                   local_server=self.served is not None)
         except Exception:  # a bad store is reported by each job with one line
             return
         from demon_lab.pipeline.identity import sweep_key
@@ -75,16 +79,18 @@ class MultirunTracking(Callback):
                                               f"{TAG}sweep_key": key, f"{TAG}experiment": config.experiment})
 
     def on_job_start(self, config: DictConfig, **kwargs: Any) -> None:
-        """In the job's process, just before the task: the sweep's parent run for the job (None in a
-        single run, which has no multirun start)."""
-        from demon_lab.app.job import PARENT_RUN
+        """In the job's process, just before the task: the sweep's parent run and the address of the
+        server it started, for the job (None in a single run, which has no multirun start)."""
+        from demon_lab.app.job import PARENT_RUN, SWEEP_SERVER
 
         PARENT_RUN.set(self.parent)
+        SWEEP_SERVER.set(self.served)
 
     def on_job_end(self, config: DictConfig, job_return: JobReturn, **kwargs: Any) -> None:
-        from demon_lab.app.job import PARENT_RUN
+        from demon_lab.app.job import PARENT_RUN, SWEEP_SERVER
 
         PARENT_RUN.set(None)
+        SWEEP_SERVER.set(None)
 
     def on_jobs_returned(self, config: DictConfig, job_returns: Sequence[JobReturn], **kwargs: Any) -> None:
         """In the sweep's process, after each batch (:mod:`demon_lab.app.sweeper`): the failed jobs'

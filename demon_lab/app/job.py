@@ -34,6 +34,11 @@ PARENT_RUN: ContextVar[str | None] = ContextVar("demon_lab_parent_run", default=
 process by the sweep's callback (``MultirunTracking.on_job_start``, which joblib and SLURM launchers
 carry into that process pickled), cleared by its ``on_job_end``."""
 
+SWEEP_SERVER: ContextVar[str | None] = ContextVar("demon_lab_sweep_server", default=None)
+"""The address of the MLflow server that the sweep's process started for its jobs
+(``tracking=local_server``), or None. Handed over like :data:`PARENT_RUN`: a job whose store is that
+server logs through it instead of starting its own."""
+
 
 class JobFailed(Exception):
     """A job of a sweep failed: its one line is printed and its traceback is in ``error.txt`` in its
@@ -83,7 +88,8 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     from demon_lab.pipeline.tracking import Tracker, flatten
 
     key = run_key(cfg)
-    tracker = Tracker(cfg.tracking.uri, cfg.experiment, cfg.tracking.artifact_dir)
+    tracker = Tracker(cfg.tracking.uri, cfg.experiment, cfg.tracking.artifact_dir,
+                      local_server=bool(cfg.tracking.get("server")))
     if not cfg.force:
         existing = tracker.find_finished(key)
         if existing:
@@ -259,7 +265,10 @@ def main_task(cfg: DictConfig) -> None:
             from demon_lab.pipeline.tracking import LocalServer
 
             server = LocalServer(cfg.tracking.server)
-            server.start()
+            if server.uri == SWEEP_SERVER.get():
+                server = None  # the sweep's server is up and stops with the sweep
+            else:
+                server.start()
         run(cfg)
     except Exception as e:
         known = isinstance(e, known_errors())

@@ -131,8 +131,13 @@ class TrackingError(RuntimeError):
 class Tracker:
     """A thin layer over ``MlflowClient``: no global active-run state, batched metrics."""
 
-    def __init__(self, uri: str, experiment: str, artifact_dir: str | Path = "mlartifacts"):
+    def __init__(self, uri: str, experiment: str, artifact_dir: str | Path = "mlartifacts",
+                 local_server: bool = False):
+        """``local_server``: ``uri`` is the loopback server of ``tracking=local_server``
+        (:class:`LocalServer`), whose new experiments keep their artifacts in ``artifact_dir`` on
+        disk, as a SQLite store's do, readable without the server."""
         _quiet_mlflow()
+        self.local_server = local_server
         from mlflow.tracking import MlflowClient
 
         self.uri = _absolute_sqlite(uri)
@@ -158,7 +163,7 @@ class Tracker:
                     return exp.experiment_id
                 location = None
                 local = self.uri.startswith(("sqlite:", "file:")) or "://" not in self.uri
-                if local or os.environ.get(LocalServer.ENV) == self.uri:  # readable without the server
+                if local or self.local_server:  # readable without the server
                     location = (self.artifact_dir / self.experiment_name).as_uri()
                 return self.client.create_experiment(self.experiment_name, artifact_location=location)
             except Exception as e:
@@ -334,8 +339,6 @@ class LocalServer:
     send their metrics to one process instead of each opening the database; the server stops when
     the command ends (atexit, even when a job failed)."""
 
-    ENV = "DEMON_LAB_LOCAL_SERVER"  # set while a server started by this command is up
-
     def __init__(self, settings: Mapping[str, Any]):
         self.port = int(settings["port"])
         self.store = _absolute_sqlite(str(settings["backend_store_uri"]))
@@ -349,8 +352,6 @@ class LocalServer:
         import socket
         import sys
 
-        if os.environ.get(self.ENV) == self.uri:
-            return  # the multirun's server is already up
         with socket.socket() as probe:
             if probe.connect_ex(("127.0.0.1", self.port)) == 0:
                 raise TrackingError(f"tracking.server.port {self.port}: the port is in use on 127.0.0.1; "
@@ -380,7 +381,6 @@ class LocalServer:
             self.stop()
             raise TrackingError(f"tracking=local_server: the MLflow server did not answer on {self.uri} "
                                 f"within {self.startup_timeout:.0f} s")
-        os.environ[self.ENV] = self.uri
         log.info("MLflow server on %s (store %s); it stops with this command", self.uri, self.store)
 
     def stop(self) -> None:
@@ -395,6 +395,4 @@ class LocalServer:
             except subprocess.TimeoutExpired:
                 os.killpg(self.process.pid, signal.SIGKILL)
                 self.process.wait()
-        self.process = None  # only a server this instance started is stopped (not the multirun's)
-        if os.environ.get(self.ENV) == self.uri:
-            os.environ.pop(self.ENV, None)
+        self.process = None
