@@ -45,7 +45,7 @@ DEVICES = ["cpu", CUDA]
 def shared_renders() -> Path:
     """The render cache that every job the tests run shares (in the test process or a child; one per
     test process, so one per xdist worker): the smoke scenes are rendered once and read by the jobs
-    after. Where scenes are cached is in no key (``demon_lab.pipeline.identity.RENDER_CACHE``)."""
+    after. Where scenes are cached is in no key (``demon_lab.pipeline.identity.without_render_cache``)."""
     return Path(tempfile.gettempdir()) / f"demon_lab-tests-{os.getpid()}" / "renders"
 
 

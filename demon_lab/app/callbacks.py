@@ -5,10 +5,10 @@
 run; with ``tracking=local_server`` it starts the sweep's one MLflow server. ``on_job_start`` hands
 the parent run id and the server's address to the job in the job's own process
 (``demon_lab.app.job.PARENT_RUN`` and ``SWEEP_SERVER``; with the joblib and SLURM launchers this
-callback travels there pickled, both with it), and the job tags itself with ``mlflow.parentRunId``. The same sweep
-command issued again (after a kill, a failure or a cluster pre-emption) continues the same parent
-run, so its children are every job of the sweep: the finished ones (skipped this time) and the ones
-run now.
+callback travels there pickled, both with it), and the job tags itself with ``mlflow.parentRunId``.
+The same sweep command issued again (after a kill, a failure or a cluster pre-emption) continues
+the same parent run, so its children are every job of the sweep: the finished ones (skipped this
+time) and the ones run now.
 
 A failing job never stops the sweep: Hydra ends it ``FAILED`` (``demon_lab.app.job.main_task``) and
 the sweeper launches the rest, handing each batch's JobReturns to ``on_jobs_returned`` in the

@@ -5,7 +5,7 @@ scene generator's), so a change that alters results makes older entries stale in
 them:
 
 - run key (:func:`run_key`): a job's resolved configuration without the keys that do not change
-  what it computes (:data:`NON_SEMANTIC`, and the render cache's location: :data:`RENDER_CACHE`);
+  what it computes (:data:`NON_SEMANTIC`; where its scenes are cached: :func:`without_render_cache`);
   a FINISHED run with the same key is skipped.
 - stage key (:func:`stage_key`): what determines one training stage's weights (its description,
   chained through the keys of its upstream stages: ``demon_lab.pipeline.stages.schedule.describe_stage``).
@@ -45,15 +45,12 @@ whether a stage reads its frozen nets' outputs from a memo (they change floating
 most, as the thread count does), what it draws, which report row it is."""
 
 
-RENDER_CACHE = "data.cache_dir"
-"""Where a job's scenes are cached (``false``: not at all): it does not change what the job computes
-(rendering is deterministic), so :func:`is_semantic` says so, yet the keys keep the ``cache_dir``
-entries of the data config and of each source, written as null (:func:`without_render_cache`): null
-is their default, so the keys written before this rule hold."""
-
-
 def without_render_cache(data: Any) -> Any:
-    """A plain data config (or a source list, or a source) with every ``cache_dir`` written as null."""
+    """A plain data config (or a source list, or a source) with every ``cache_dir`` written as null.
+
+    Where a job's scenes are cached (``data.cache_dir`` or a source's own; ``false``: not at all) does
+    not change what it computes (rendering is deterministic), so :func:`is_semantic` says so; the keys
+    still hold these entries, as null, their default, so that the keys written before this rule hold."""
     if isinstance(data, dict):
         return {k: None if k == "cache_dir" else without_render_cache(v) for k, v in data.items()}
     if isinstance(data, list):
@@ -80,7 +77,7 @@ def is_semantic(key: str) -> bool:
     results, i.e. lies outside every :data:`NON_SEMANTIC` subtree."""
     key = key.lstrip("+~").split("=", 1)[0].replace("/", ".")
     if key.startswith("data.") and key.endswith(".cache_dir"):
-        return False  # RENDER_CACHE, or a source's own (data.train.0.cache_dir)
+        return False  # where scenes are cached (without_render_cache): data.cache_dir, data.train.0.cache_dir
     return not any(key == k or key.startswith(k + ".") for k in NON_SEMANTIC)
 
 
