@@ -887,3 +887,54 @@ def test_data_stats_scores_the_classical_priors_on_the_real_pair():
         assert stats[f"{name}_ransac_prior_tran_deg"] < 10 and stats[f"{name}_ransac_prior_rot_deg"] < 1
     assert "dis_x2" in format_priors(stats) and "ransac_prior tran" in format_priors(stats)
     assert "dis_epe" not in dataset_statistics([dataset], 1)
+
+
+def test_a_fresh_source_grows_by_one_new_scene_at_its_rate_and_replays_from_any_step():
+    """fresh=[0.1, 0]: source 0 (10 scenes) gains one scene every 10 of its draws, and the draw at
+    which it grows is that new scene, its first appearance; every other draw of it is uniform over the
+    pool so far; source 1 draws as the plain sampler (the same sources, key for key); shards and a
+    resumed stage see the keys of one process; fresh 0 everywhere is the plain sampler."""
+    args = ([10, 20], [1.0, 1.0], 400, 3)
+    keys = list(MixtureSampler(*args, batch=8, fresh=[0.1, 0.0]))
+    plain = list(MixtureSampler(*args, batch=8))
+    assert [k[0] for k in keys] == [k[0] for k in plain]
+    grown = [i for s, i, _ in keys if s == 0]
+    first_seen: dict[int, int] = {}
+    for c, index in enumerate(grown, start=1):
+        pool = 10 + (c // 10)
+        assert index < pool
+        first_seen.setdefault(index, c)
+        if c % 10 == 0:  # the c-th draw grows the pool: it draws the new scene, never seen before
+            assert index == pool - 1 and first_seen[index] == c
+    assert sorted(i for i in first_seen if i >= 10) == list(range(10, 10 + len(grown) // 10))
+    assert max(i for s, i, _ in keys if s == 1) < 20
+    shards = [list(MixtureSampler(*args, rank=r, world=2, batch=4, fresh=[0.1, 0.0])) for r in range(2)]
+    assert [k for b in range(50) for shard in shards for k in shard[4 * b:4 * b + 4]] == keys
+    assert list(MixtureSampler(*args, batch=8, skip=96, fresh=[0.1, 0.0])) == keys[96:]
+    assert list(MixtureSampler(*args, batch=8, fresh=[0.0, 0.0])) == plain
+    with pytest.raises(ValueError, match="fresh: expected one rate"):
+        MixtureSampler(*args, fresh=[0.1])
+    with pytest.raises(ValueError, match="fresh: the easy_first order"):
+        MixtureSampler(*args, fresh=[0.1, 0.0], easy_first=(0.5, 0.5), order=[range(10), range(20)])
+
+
+def test_fresh_scenes_render_new_scenes_of_the_next_seeds_in_the_loaders_worker(tmp_path):
+    """DemonDataModule(fresh_scenes=0.25) over a 3-scene synthetic set: the set's draws reach scenes
+    past its own three (the next seeds of its split, the scenes a longer set has at those indices),
+    rendered by the loader's worker and cached beside the others; the layers lead keeps its own keys."""
+    from demon_lab.data.datamodule import DemonDataModule
+
+    scenes = SyntheticDataset("synthetic_sun3d", length=3, size=(64, 64), cache_dir=tmp_path)
+    module = DemonDataModule(train=[{"weight": 1.0, "dataset": scenes}], batch_size=2, num_workers=1,
+                             samples_per_epoch=24, fresh_scenes=0.25, layers_first=0.25, layers_size=(64, 64))
+    loader = module.train_dataloader()
+    drawn = [i for s, i, _ in module._sampler if s == 0]
+    assert max(drawn) == 3 + 18 // 4 - 1 and len(scenes) == 3
+    module._sampler.set_epoch(0)
+    batches = list(loader)
+    assert len(batches) == 12
+    cached = sorted(int(p.stem) for p in scenes.cache.glob("*.pt"))
+    assert cached == sorted(set(drawn))  # every drawn scene, the new ones too, rendered once and cached
+    longer = SyntheticDataset("synthetic_sun3d", length=8, size=(64, 64), cache_dir=False)
+    again = scenes.extended(5)
+    assert len(again) == 8 and torch.equal(again.load(7)["image1"], longer.load(7)["image1"])

@@ -298,7 +298,14 @@ def test_a_job_that_raises_leaves_its_run_failed(tmp_path):
     (["+schedule.stages.flow1.restarts=[3,0]"], "schedule.stages.flow1.restarts: expected [starts, steps]"),
     (["+schedule.stages.dm1.sig_start=0.5"],
      "schedule.stages.dm1.sig_start: not an option of a depth_motion stage (its options: kind, steps, lr, "
-     "warmup_steps, batch_size, oracle, easy_first, net, gt_flow_warmup)"),
+     "warmup_steps, batch_size, oracle, easy_first, fresh_scenes, keep_best, net, gt_flow_warmup)"),
+    (["+schedule.stages.flow1.fresh_scenes=2"],
+     "schedule.stages.flow1.fresh_scenes: expected new scenes per training draw in [0, 1], got 2"),
+    (["+schedule.stages.dm1.fresh_scenes=0.1", "+schedule.stages.dm1.easy_first=[0.5,0.5]"],
+     "schedule.stages.dm1.fresh_scenes: the easy_first order is of a fixed set of scenes; leave easy_first unset"),
+    (["+schedule.stages.flow1.keep_best=-1"], "schedule.stages.flow1.keep_best: expected an integer >= 0, got -1"),
+    (["+schedule.stages.flow1.keep_best=10", "data.val=[]"],
+     "schedule.stages.flow1.keep_best: scores the held-apart sets, and data.val has none"),
     (["+schedule.stages.refine.queue_size=4"], "schedule.stages.refine.queue_size: not an option of a refine stage"),
     (["trainer.reuse_frozen=sometimes"], "trainer.reuse_frozen: expected true or false, got 'sometimes'"),
     (["baseline.size=[16,16]"], "baseline.size: expected native or [H, W] with sides >= 32 pixels"),
@@ -869,3 +876,46 @@ def test_multirun_has_one_parent_run_and_trains_once(tmp_path):
     stage_runs = [r for r in runs if r.data.tags.get("demon_lab.kind") == "stage"]
     assert len(stage_runs) == 6
     assert result.stdout.count("stage flow1: cached") == 1 and result.stdout.count("[demon_lab] results") == 2
+
+
+def test_keep_best_keeps_the_nets_of_the_lowest_held_apart_score_across_a_resume(tmp_path):
+    """KeepBest scores every 2 steps and at the last: scripted translation scores 40, 30, 35 at steps
+    2, 4, 6 keep step 4's nets; a stage resumed after step 4 (a new callback over the same file) keeps
+    them against a worse score at step 6 and takes a better one at step 8; the restored nets are those
+    of the best step, bit for bit, and only the stage's own nets are written."""
+    from types import SimpleNamespace
+
+    from demon_lab.pipeline.stages.validation import KeepBest
+
+    scripted = {2: 40.0, 4: 30.0, 6: 35.0, 8: 20.0}
+
+    class Scorer:
+        def evaluate(self, trainer, module):
+            score = scripted[trainer.global_step]
+            return {"val/a/tran_deg": score, "val/b/tran_deg": score, "val/a/epe": -1.0}
+
+    chain = SimpleNamespace(dm1=torch.nn.Linear(2, 2), flow1=torch.nn.Linear(2, 2))
+    module = SimpleNamespace(chain=chain)
+    states = {}
+
+    def steps(keep, first, last, max_steps):
+        for step in range(first, last + 1):
+            with torch.no_grad():
+                chain.dm1.weight.fill_(float(step))
+            states[step] = {k: v.clone() for k, v in chain.dm1.state_dict().items()}
+            keep.on_train_batch_end(SimpleNamespace(global_step=step, max_steps=max_steps), module, None, None, 0)
+
+    path = tmp_path / "best.pt"
+    keep = KeepBest(Scorer(), "depth_motion", 2, path, ["dm1"])
+    steps(keep, 1, 4, max_steps=8)
+    resumed = KeepBest(Scorer(), "depth_motion", 2, path, ["dm1"])
+    assert (resumed.best_step, resumed.best) == (4, 30.0)
+    steps(resumed, 5, 6, max_steps=8)
+    assert resumed.best_step == 4
+    figures = resumed.restore(chain)
+    assert figures["keep_best_step"] == 4 and figures["keep_best_tran_deg"] == 30.0
+    assert torch.equal(chain.dm1.weight, states[4]["weight"])
+    assert set(torch.load(path, weights_only=True)["nets"]) == {"dm1"}
+    steps(resumed, 7, 8, max_steps=8)
+    assert resumed.restore(chain)["keep_best_step"] == 8 and torch.equal(chain.dm1.weight, states[8]["weight"])
+    assert figures["keep_best_seconds"] >= 0

@@ -8,6 +8,7 @@ one (each keeps its name, so metrics are reported per dataset).
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping, Sequence
 from typing import Any
 
@@ -16,7 +17,14 @@ import numpy as np
 import torch
 from torch.utils.data import DataLoader
 
-from demon_lab.data.datasets import LayersDataset, MixtureDataset, MixtureSampler, PairDataset, flow_order
+from demon_lab.data.datasets import (
+    LayersDataset,
+    MixtureDataset,
+    MixtureSampler,
+    PairDataset,
+    SyntheticDataset,
+    flow_order,
+)
 
 
 def _seed_worker(worker_id: int) -> None:
@@ -41,6 +49,7 @@ class DemonDataModule(L.LightningDataModule):
         pin_memory: bool = False,
         layers_first: float | None = None,
         layers_size: Sequence[int] = (96, 128),
+        fresh_scenes: float = 0.0,
     ):
         super().__init__()
         self.train_sources = [(float(e["weight"]), e["dataset"]) for e in train]
@@ -53,6 +62,8 @@ class DemonDataModule(L.LightningDataModule):
         # the first fraction of the stage on fresh 2-D layers (MixtureSampler's lead), then the sources
         self.layers_first = None if layers_first is None else float(layers_first)
         self.layers_size = tuple(layers_size)
+        # new synthetic scenes per draw of a synthetic source, rendered by the loader's workers (MixtureSampler's fresh)
+        self.fresh_scenes = float(fresh_scenes)
         self._sampler: MixtureSampler | None = None
 
     def _loader(self, dataset, **kwargs) -> DataLoader:
@@ -66,13 +77,20 @@ class DemonDataModule(L.LightningDataModule):
             raise ValueError("data.train: no training source configured")
         weights, datasets = zip(*self.train_sources)
         order = None if self.easy_first is None else [flow_order(d) for d in datasets]
-        lead = None
+        lead, fresh = None, None
+        if self.fresh_scenes:
+            fresh = [self.fresh_scenes if isinstance(d, SyntheticDataset) else 0.0 for d in datasets]
+            extra = math.ceil(self.fresh_scenes * self.samples_per_epoch)
+            lengths = [len(d) for d in datasets]
+            datasets = tuple(d.extended(extra) if f else d for d, f in zip(datasets, fresh, strict=True))
         if self.layers_first is not None:
             weights, datasets = (*weights, 0.0), (*datasets, LayersDataset(self.layers_size, self.seed))
             lead = (len(datasets) - 1, self.layers_first)
-        self._sampler = MixtureSampler([len(d) for d in datasets], weights,
+            if fresh is not None:
+                fresh, lengths = [*fresh, 0.0], [*lengths, len(datasets[-1])]
+        self._sampler = MixtureSampler(lengths if fresh is not None else [len(d) for d in datasets], weights,
                                        self.samples_per_epoch, self.seed, self.skip, self.rank, self.world,
-                                       self.batch_size, self.easy_first, order, lead)
+                                       self.batch_size, self.easy_first, order, lead, fresh)
         return self._loader(MixtureDataset(datasets), sampler=self._sampler, drop_last=True)
 
     def val_dataloader(self) -> list[DataLoader]:

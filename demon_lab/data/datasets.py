@@ -13,6 +13,7 @@ Each class also carries the supplementary's Table 1 metadata (``perfect_gt``, ``
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import math
 import os
@@ -191,6 +192,15 @@ class SyntheticDataset(PairDataset):
 
     def seed_of(self, index: int) -> int:
         return SPLIT_SEEDS[self.split] + index
+
+    def extended(self, extra: int) -> SyntheticDataset:
+        """This set with ``extra`` more scenes after its own (the next seeds of its split), rendered
+        where first loaded and cached as the others: the pool a ``fresh`` source of
+        :class:`MixtureSampler` grows into. Its own scenes, and so the cache entries of the set, are
+        unchanged."""
+        grown = copy.copy(self)
+        grown.length, grown._memory, grown._memory_bytes = self.length + int(extra), {}, 0
+        return grown
 
     def load(self, index: int) -> smp.Sample:
         kept = self._memory.get(index)
@@ -413,12 +423,19 @@ class MixtureSampler(torch.utils.data.Sampler):
 
     ``lead = (source, fraction)``: the first ``fraction`` of the epoch's keys, rounded to whole global
     batches, all come from ``source`` (whatever its weight; 0 keeps it out of the rest), the others as
-    above: a stage that starts on one kind of data (``layers_first``) and never mixes it into a batch."""
+    above: a stage that starts on one kind of data (``layers_first``) and never mixes it into a batch.
+
+    ``fresh[s]`` (new scenes per draw of source ``s``, 0 for none) grows a source as it is drawn: at its
+    c-th draw of the epoch the source holds its first ``lengths[s] + floor(fresh[s] * c)`` samples
+    (its dataset must hold that many: :meth:`SyntheticDataset.extended`), and a draw at which that
+    number rises is the newest sample, drawn for the first time; the others draw uniformly from the
+    pool so far. So a stage meets new scenes at a steady rate, each rendered once by a loader worker,
+    and its sequence is a function of the seed alone (a resumed stage sees the same keys)."""
 
     def __init__(self, lengths: Sequence[int], weights: Sequence[float], num_samples: int, seed: int = 0,
                  skip: int = 0, rank: int = 0, world: int = 1, batch: int = 1,
                  easy_first: Sequence[float] | None = None, order: Sequence[Sequence[int]] | None = None,
-                 lead: tuple[int, float] | None = None):
+                 lead: tuple[int, float] | None = None, fresh: Sequence[float] | None = None):
         if len(lengths) != len(weights) or not lengths:
             raise ValueError("weights: expected one weight per source")
         w = np.asarray(weights, dtype=np.float64)
@@ -445,6 +462,13 @@ class MixtureSampler(torch.utils.data.Sampler):
                 raise ValueError("lead: one curriculum at a time (easy_first is set)")
             step = self.batch * self.world
             self.lead_source, self.lead_keys = source, round(fraction * self.num_samples / step) * step
+        self.fresh = None
+        if fresh is not None and any(fresh):
+            if len(fresh) != len(self.lengths) or not all(0 <= f <= 1 for f in fresh):
+                raise ValueError(f"fresh: expected one rate in [0, 1] per source, got {list(fresh)}")
+            if self.easy_first is not None:
+                raise ValueError("fresh: the easy_first order is of a fixed set (easy_first is set)")
+            self.fresh = [float(f) for f in fresh]
 
     def _share(self, key: int) -> float:
         """The easiest fraction of each source that key ``key`` of the sequence draws from."""
@@ -470,9 +494,14 @@ class MixtureSampler(torch.utils.data.Sampler):
         if self.lead_keys and epoch == 0:
             sources[: self.lead_keys] = self.lead_source
         step = self.batch * self.world
+        drawn = [0] * len(self.lengths)  # draws of each source so far (fresh: its pool grows with them)
         for n, s in enumerate(sources):
             share = self._share(epoch * self.num_samples + n)
-            if share >= 1:  # every sample, as the plain sampler draws
+            if self.fresh is not None and self.fresh[s]:
+                c = drawn[s] = drawn[s] + 1
+                new, before = math.floor(self.fresh[s] * c), math.floor(self.fresh[s] * (c - 1))
+                index = self.lengths[s] + new - 1 if new > before else int(rng.integers(self.lengths[s] + new))
+            elif share >= 1:  # every sample, as the plain sampler draws
                 index = int(rng.integers(self.lengths[s]))
             else:
                 index = int(self.order[s][rng.integers(max(1, math.ceil(share * self.lengths[s])))])

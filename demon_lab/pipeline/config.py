@@ -21,17 +21,41 @@ def _times(value: Any, factor: Any) -> int:
     return value * factor
 
 
+FOLDER_NAME_MAX = 200
+"""The longest job folder name (bytes): most file systems refuse a name over 255."""
+
+
+def _folder(name: Any) -> str:
+    """``${folder:${hydra.job.override_dirname}}``: the job folder's name, the overrides themselves
+    while they fit in :data:`FOLDER_NAME_MAX` bytes; a longer one is cut at an override's end and
+    ends in a digest of the whole (the same command, the same folder: a re-issued job resumes)."""
+    import hashlib
+
+    name = str(name)
+    if len(name.encode()) <= FOLDER_NAME_MAX:
+        return name
+    kept = ""
+    for part in name.split(","):
+        if len((kept + "," + part).encode()) > FOLDER_NAME_MAX - 20:
+            break
+        kept = f"{kept},{part}" if kept else part
+    return f"{kept},+{hashlib.sha256(name.encode()).hexdigest()[:12]}"
+
+
 def register_resolvers() -> None:
     """``${bundled:NAME}`` -> the absolute path of a real sample that ships inside the package
     (:data:`demon_lab.resources.DATA`), whatever the working directory; ``${times:N,K}`` -> N x K
     for integers (nothing else is evaluated); ``${non_semantic_overrides:}`` -> the job's
-    overrides that change no result."""
+    overrides that change no result; ``${folder:NAME}`` -> a job folder's name that fits the file
+    system (:func:`_folder`)."""
     from omegaconf import OmegaConf
 
     if not OmegaConf.has_resolver("bundled"):
         OmegaConf.register_new_resolver("bundled", lambda name="": str(DATA / name))
     if not OmegaConf.has_resolver("times"):
         OmegaConf.register_new_resolver("times", _times)
+    if not OmegaConf.has_resolver("folder"):
+        OmegaConf.register_new_resolver("folder", _folder)
     if not OmegaConf.has_resolver("non_semantic_overrides"):
         OmegaConf.register_new_resolver("non_semantic_overrides", _non_semantic_overrides)
 

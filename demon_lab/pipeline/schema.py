@@ -75,6 +75,12 @@ class StageSpec:
     """Ground-truth inputs in training ('flow' for depth-motion stages, 'depth_motion' for flow2)."""
     easy_first: tuple[float, float] | None = None
     """A curriculum: the easiest fraction of samples first, widening to all (None: none)."""
+    fresh_scenes: float = 0.0
+    """New synthetic scenes per training draw of a synthetic source, rendered by the data loader's
+    workers as training goes (0: the source's fixed set, as DeMoN's fixed training files)."""
+    keep_best: int = 0
+    """Score the held-apart sets (``data.val``) every this many steps and at the end, and keep the
+    trained nets of the best score (0: the last step's nets, as DeMoN)."""
 
     def module_options(self) -> dict[str, Any]:
         """The keyword arguments of the stage's module (:data:`demon_lab.pipeline.stages.modules.STAGE_KINDS`)
@@ -88,7 +94,7 @@ class StageSpec:
     def curriculum(self) -> dict[str, Any]:
         """The keyword arguments of the stage's training data (:func:`demon_lab.data.datamodule.build_datamodule`)
         that the stage's options set."""
-        return {"easy_first": self.easy_first}
+        return {"easy_first": self.easy_first, "fresh_scenes": self.fresh_scenes}
 
 
 @dataclass(frozen=True)

@@ -210,6 +210,25 @@ def _execution(cfg: DictConfig, here: bool = True) -> None:
         raise ConfigError(problem)
 
 
+SYNTHETIC_SOURCE = "demon_lab.data.datasets.SyntheticDataset"
+"""The training source whose scenes ``fresh_scenes`` renders (a generator makes new ones)."""
+
+
+def _fresh_scenes(cfg: DictConfig, name: str, spec: DictConfig) -> None:
+    rate = spec.fresh_scenes
+    if isinstance(rate, bool) or not isinstance(rate, (int, float)) or not 0 <= rate <= 1:
+        raise ConfigError(f"schedule.stages.{name}.fresh_scenes: expected new scenes per training draw in "
+                          f"[0, 1], got {rate!r}")
+    if not rate:
+        return
+    if spec.get("easy_first") is not None:
+        raise ConfigError(f"schedule.stages.{name}.fresh_scenes: the easy_first order is of a fixed set of "
+                          f"scenes; leave easy_first unset")
+    if not any(entry.dataset.get("_target_") == SYNTHETIC_SOURCE for entry in cfg.data.train):
+        raise ConfigError(f"schedule.stages.{name}.fresh_scenes: renders synthetic scenes, and data.train has "
+                          f"no {SYNTHETIC_SOURCE} source")
+
+
 def validate(cfg: DictConfig, here: bool = True) -> None:
     """Check every key the job reads (one ConfigError line). ``here=False``: the job will run on
     another machine (a cluster launcher), so what depends on this machine's devices is left to the
@@ -287,6 +306,13 @@ def validate(cfg: DictConfig, here: bool = True) -> None:
                 raise ConfigError(f"schedule.stages.{name}.easy_first: expected [start, until]: the easiest "
                                   f"fraction start in (0, 1] widening to all samples at the fraction until in "
                                   f"(0, 1] of the stage, got {given!r}")
+        if spec.get("fresh_scenes") is not None:
+            _fresh_scenes(cfg, name, spec)
+        if spec.get("keep_best") is not None:
+            _int(f"schedule.stages.{name}.keep_best", spec.keep_best, 0)
+            if spec.keep_best and not cfg.data.get("val"):
+                raise ConfigError(f"schedule.stages.{name}.keep_best: scores the held-apart sets, and data.val "
+                                  f"has none; set data.val or keep_best=0")
         if spec.get("layers_first") is not None:
             first = spec.layers_first
             _flow1_only(name, spec, "layers_first", "trains on 2-D layers")

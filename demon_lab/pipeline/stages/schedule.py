@@ -53,6 +53,8 @@ def describe_stage(cfg: DictConfig, name: str, upstream: dict[str, str]) -> dict
         # share this stage.
         "loss": {k: float(cfg.loss[k]) for k in spec.weight_keys()},
         "train_data": without_render_cache(plain(cfg.data.train)),  # not where its scenes are cached
+        # the held-apart sets that choose the kept nets (keep_best; left out where the stage keeps its last)
+        **({"keep_best_on": without_render_cache(plain(cfg.data.val))} if spec.keep_best else {}),
         "seed": cfg.seed,
         "upstream": dict(upstream),
         # the nets' precision when it is not float32 and the stage trains (left out at 32: the keys from

@@ -40,10 +40,11 @@ class TrainingDiverged(FloatingPointError):
 
 
 def build_datamodule(cfg: DictConfig, batch_size: int, samples: int, skip: int = 0, easy_first=None,
-                     pin_memory: bool = False, layers_first: float | None = None):
+                     pin_memory: bool = False, layers_first: float | None = None, fresh_scenes: float = 0.0):
     """Training data for ``samples`` draws in batches of ``batch_size`` (global: under DDP each
-    process loads its share of every batch); ``easy_first``, ``layers_first``: a stage's curriculum
-    (MixtureSampler: the easiest samples first; fresh 2-D layers for the first part of the stage);
+    process loads its share of every batch); ``easy_first``, ``layers_first``, ``fresh_scenes``: a
+    stage's curriculum (MixtureSampler: the easiest samples first; fresh 2-D layers for the first part
+    of the stage; new synthetic scenes at a steady rate per draw);
     ``pin_memory``: batches in page-locked memory (faster copies to a CUDA device)."""
     from demon_lab.data.datamodule import DemonDataModule
     from demon_lab.pipeline.config import instantiate
@@ -53,7 +54,7 @@ def build_datamodule(cfg: DictConfig, batch_size: int, samples: int, skip: int =
     return DemonDataModule(train=train, batch_size=batch_size // world, num_workers=cfg.data.num_workers,
                            samples_per_epoch=samples, seed=cfg.seed, skip=skip, rank=global_rank(cfg), world=world,
                            easy_first=easy_first, pin_memory=pin_memory, layers_first=layers_first,
-                           layers_size=tuple(cfg.data.size))
+                           layers_size=tuple(cfg.data.size), fresh_scenes=fresh_scenes)
 
 
 def train_stage(cfg: DictConfig, chain: DeMoN, stage: StageDir, logger: L.pytorch.loggers.Logger | None,
@@ -87,13 +88,18 @@ def train_stage(cfg: DictConfig, chain: DeMoN, stage: StageDir, logger: L.pytorc
         dirpath=stage.path, filename="step{step}", save_last=True, save_top_k=0,
         every_n_train_steps=max(1, int(cfg.scale.checkpoint_every)), auto_insert_metric_name=False)
     callbacks: list = [checkpoint]
-    if logger is not None and cfg.data.get("val") and global_rank(cfg) == 0:
+    keep = None
+    if (logger is not None or spec.keep_best) and cfg.data.get("val") and global_rank(cfg) == 0:
         from demon_lab.pipeline.config import instantiate
-        from demon_lab.pipeline.stages.validation import StageValidation
+        from demon_lab.pipeline.stages.validation import KeepBest, StageValidation
 
         passes = spec.iterations if spec.kind == "refine" else int(stage.name in ("flow2", "dm2", "iterative"))
-        callbacks.append(StageValidation(stage.name, [instantiate(e) for e in cfg.data.val],
-                                         int(cfg.tracking.val_every_n_steps), passes))
+        scorer = StageValidation(stage.name, [instantiate(e) for e in cfg.data.val],
+                                 int(cfg.tracking.val_every_n_steps) if logger is not None else 0, passes)
+        callbacks.append(scorer)
+        if spec.keep_best:
+            keep = KeepBest(scorer, spec.kind, spec.keep_best, stage.path / "best.pt", TRAINED_NETS[stage.name])
+            callbacks.append(keep)
     trainer = _trainer(cfg, spec.steps, logger=logger if logger is not None else False, callbacks=callbacks,
                        enable_progress_bar=progress)
     if resume is not None:
@@ -105,11 +111,16 @@ def train_stage(cfg: DictConfig, chain: DeMoN, stage: StageDir, logger: L.pytorc
     except FloatingPointError as e:
         raise TrainingDiverged(f"stage {stage.name}: {e}") from e
     seconds = time.perf_counter() - start
+    kept = keep.restore(chain) if keep is not None else {}
+    if kept:
+        log.info("stage %s: keeps its nets of step %d of %d (held-apart %s %.4f; scoring took %.0f s)", stage.name,
+                 kept.get("keep_best_step", spec.steps), spec.steps, keep.metric,
+                 kept.get(f"keep_best_{keep.metric}", float("nan")), kept["keep_best_seconds"])
     if global_rank(cfg) == 0:
         stage.save({net: plain_state(getattr(chain, net)) for net in TRAINED_NETS[stage.name]})
     steps_done = spec.steps - start_step
     figures = {"seconds": seconds, "steps_per_second": steps_done / max(seconds, 1e-9), "resumed_from_step": start_step,
-               **{f"final/{k}": v for k, v in module.last_terms.items()}}
+               **{f"final/{k}": v for k, v in module.last_terms.items()}, **kept}
     if module.memo is not None and module.memo.hits + module.memo.misses:
         figures["reuse_frozen_hits"] = module.memo.hits / (module.memo.hits + module.memo.misses)
     # The trainer and the module refer to each other: collect them (and the datasets' in-memory

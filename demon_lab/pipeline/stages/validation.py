@@ -9,6 +9,8 @@ synthetic_sun3d validation scenes in the default mix) and the stage's MLflow run
   trains a depth-motion net (dm1, dm2, iterative);
 - ``val/<set>/l1_inv``: L1 of the inverse depth at level 2 (refine: the refined depth at level 0).
 
+The same scores choose a stage's kept nets with the stage option ``keep_best`` (:class:`KeepBest`).
+
 It reads the chain in eval mode without gradients and puts the trained nets back in training
 mode: training itself is unchanged (bit for bit; ``tests/test_pipeline.py``). The pass scored is
 the one the stage trains: the bootstrap pass for flow1 and dm1, the first iterative pass for
@@ -18,6 +20,8 @@ flow2, dm2 and iterative, and for refine the refinement of the pass its training
 from __future__ import annotations
 
 import math
+import os
+import time
 from collections.abc import Sequence
 from typing import Any
 
@@ -42,13 +46,18 @@ class StageValidation(L.Callback):
         self.stage, self.datasets, self.iterations = stage, list(datasets), int(iterations)
         self.every, self.batch_size = int(every_n_steps), int(batch_size)
         self._zero_logged = False
+        self._last: tuple[int, dict[str, float]] | None = None
 
-    def on_train_batch_end(self, trainer, module, outputs, batch, batch_idx) -> None:
+    def due(self, trainer) -> bool:
+        """Whether this step is one to score: every ``every_n_steps`` and the stage's last."""
         step = trainer.global_step
-        if trainer.logger is None or not self.datasets or self.every <= 0:
-            return
-        if step % self.every and step < trainer.max_steps:
-            return
+        return bool(self.datasets) and self.every > 0 and (step % self.every == 0 or step >= trainer.max_steps)
+
+    def evaluate(self, trainer, module) -> dict[str, float]:
+        """``val/<set>/<metric>`` of the chain as it is now; the nets go back to their modes. Scored
+        once per step (the curves and :class:`KeepBest` share a step's scores)."""
+        if self._last is not None and self._last[0] == trainer.global_step:
+            return dict(self._last[1])
         chain = module.chain
         was_training = {name: net.training for name, net in module.nets()}
         chain_training = chain.training
@@ -63,6 +72,14 @@ class StageValidation(L.Callback):
             chain.training = chain_training  # the container's own flag, then each net's
             for name, net in module.nets():
                 net.train(was_training[name])
+        self._last = (trainer.global_step, values)
+        return dict(values)
+
+    def on_train_batch_end(self, trainer, module, outputs, batch, batch_idx) -> None:
+        if trainer.logger is None or not self.due(trainer):
+            return
+        values = self.evaluate(trainer, module)
+        step = trainer.global_step
         if not self._zero_logged:
             self._zero_logged = True
         else:
@@ -96,3 +113,50 @@ class StageValidation(L.Callback):
             for i in range(p.flow.shape[0]):
                 rows["l1_inv"].append(float(diff[i][torch.isfinite(diff[i])].mean()))
         return {k: _mean(v) for k, v in rows.items() if v}
+
+
+BEST_METRIC = {"flow": "epe", "depth_motion": "tran_deg", "iterative": "tran_deg", "refine": "l1_inv"}
+"""The held-apart score a stage of each kind keeps its best nets by (``keep_best``; lower is better):
+the flow of the pass a flow stage trains, the translation of a depth-motion net (the motion that the
+depth's scale and the next pass rest on), the refined depth of the refinement net."""
+
+
+class KeepBest(L.Callback):
+    """The stage option ``keep_best``: every ``every`` steps and at the stage's last, the stage's
+    :data:`BEST_METRIC` averaged over the held-apart sets; the trained nets of the lowest score so far
+    are written to ``path`` (with the step and the score, so a resumed stage keeps its best), and
+    :meth:`restore` puts them back into the chain when the stage ends. ``seconds`` is what scoring
+    cost this process (the stage logs it: the option's price)."""
+
+    def __init__(self, scorer: StageValidation, kind: str, every: int, path, nets: Sequence[str]):
+        self.scorer, self.metric, self.every = scorer, BEST_METRIC[kind], int(every)
+        self.path, self.nets, self.seconds = path, list(nets), 0.0
+        saved = torch.load(path, weights_only=True) if path.is_file() else None
+        self.best_step, self.best = (saved["step"], saved["score"]) if saved else (-1, math.inf)
+
+    def on_train_batch_end(self, trainer, module, outputs, batch, batch_idx) -> None:
+        step = trainer.global_step
+        if step % self.every and step < trainer.max_steps:
+            return
+        start = time.perf_counter()
+        values = self.scorer.evaluate(trainer, module)
+        score = _mean([v for k, v in values.items() if k.endswith(f"/{self.metric}")])
+        if score < self.best:
+            self.best, self.best_step = score, step
+            state = {"step": step, "score": score,
+                     "nets": {n: {k: v.detach().cpu().clone() for k, v in getattr(module.chain, n).state_dict().items()}
+                              for n in self.nets}}
+            tmp = self.path.with_suffix(".tmp")
+            torch.save(state, tmp)
+            os.replace(tmp, self.path)  # atomic: a kill never leaves half a file
+        self.seconds += time.perf_counter() - start
+
+    def restore(self, chain) -> dict[str, float]:
+        """Load the best nets into ``chain``; returns the stage's figures of the option."""
+        if not self.path.is_file():
+            return {"keep_best_seconds": self.seconds}
+        saved = torch.load(self.path, weights_only=True)
+        for name, state in saved["nets"].items():
+            getattr(chain, name).load_state_dict(state)
+        return {"keep_best_step": float(saved["step"]), f"keep_best_{self.metric}": float(saved["score"]),
+                "keep_best_seconds": self.seconds}
