@@ -16,6 +16,7 @@ import pytest
 import torch
 import yaml
 from hydra import compose, initialize_config_dir
+from omegaconf import OmegaConf
 
 from demon_lab import resources
 from demon_lab.__main__ import CONF, check
@@ -357,10 +358,11 @@ def test_documented_configurations_compose_and_validate(overrides):
 EXPERIMENTS = sorted(p.stem for p in (resources.CONF / "experiment").glob("*.yaml") if p.stem != "released_model")
 """The experiments that run on demon_lab's own data (released_model needs DeMoN's files and weights:
 tests/test_released.py)."""
-SWEPT = [e for e in EXPERIMENTS if e not in ("cpu_recipe", "cpu_design", "cpu_motion", "cpu_prior", "cpu_departures")]
-"""The experiments that declare a sweep (the probes of cpu_recipe, cpu_design, cpu_motion, cpu_prior and
-cpu_departures are single jobs, the commands of their study specs in ablations/, which tests/test_report.py
-composes)."""
+SWEPT = [e for e in EXPERIMENTS if e not in ("cpu_recipe", "cpu_design", "cpu_motion", "cpu_prior", "cpu_departures",
+                                             "learned_design")]
+"""The experiments that declare a sweep (the probes of cpu_recipe, cpu_design, cpu_motion, cpu_prior,
+cpu_departures and learned_design are single jobs, the commands of their study specs in ablations/, which
+tests/test_report.py composes)."""
 
 
 @pytest.mark.parametrize("experiment", SWEPT)
@@ -919,3 +921,100 @@ def test_keep_best_keeps_the_nets_of_the_lowest_held_apart_score_across_a_resume
     steps(resumed, 7, 8, max_steps=8)
     assert resumed.restore(chain)["keep_best_step"] == 8 and torch.equal(chain.dm1.weight, states[8]["weight"])
     assert figures["keep_best_seconds"] >= 0
+
+
+LEARNED_CHOICES = {  # the study's row -> what it turns off, as the row's overrides set it
+    "no_correlation": {"model.correlation": None},
+    "no_layers_first": {"schedule.stages.flow1.layers_first": None},
+    "no_fresh_scenes": {"schedule.stages.flow1.fresh_scenes": 0, "schedule.stages.dm1.fresh_scenes": 0},
+    "no_gt_flow_warmup": {"schedule.stages.dm1.gt_flow_warmup": 0},
+    "no_keep_best": {f"schedule.stages.{s}.keep_best": 0 for s in ("flow1", "dm1", "iterative")},
+    "profile_steps": {"scale.steps.flow1": 5000, "scale.steps.dm1": 2500,  # (and the stages that read them)
+                      "schedule.stages.flow1.steps": 5000, "schedule.stages.dm1.steps": 2500},
+    "no_previous": {"model.flow2_prior": None, "model.dm2_prior": None},
+}
+
+
+def _leaves(node, prefix=""):
+    if isinstance(node, dict):
+        return {k: v for key, value in node.items() for k, v in _leaves(value, f"{prefix}{key}.").items()}
+    return {prefix[:-1]: node}
+
+
+def test_the_learned_design_has_no_classical_prior_and_its_study_turns_each_choice_off_alone():
+    """design=learned: no DIS flow, no RANSAC motion, its choices set; the profile and DeMoN's design
+    set none of its new options; each row of ablations/learned_design.yaml differs from row learned in
+    exactly the keys its name turns off (and its row tag), and every row composes the design."""
+    from demon_lab.pipeline.identity import semantic_config
+
+    spec = yaml.safe_load((resources.STUDIES / "learned_design.yaml").read_text())
+    with initialize_config_dir(CONF, version_base="1.3"):
+        learned = compose("config", ["design=learned"])
+        others = [compose("config", []), compose("config", ["+experiment=cpu_departures", *DEMON_DESIGN])]
+        rows = {}
+        for run in spec["runs"]:
+            cfg = compose("config", run)
+            rows[cfg.row] = _leaves(OmegaConf.to_container(cfg, resolve=True))
+    assert (learned.model.flow1_prior, learned.model.dm1_prior) == (None, None)
+    assert learned.model.correlation == [8, 2] and learned.model.flow2_prior == "previous"
+    stages = learned.schedule.stages
+    assert stages.flow1.fresh_scenes > 0 and stages.dm1.fresh_scenes > 0 and stages.dm1.gt_flow_warmup > 0
+    assert stages.flow1.keep_best > 0 and stages.dm1.keep_best > 0 and stages.flow1.layers_first > 0
+    for cfg in others:
+        for stage in cfg.schedule.stages.values():
+            assert not {"fresh_scenes", "keep_best"} & set(stage)
+    assert set(rows) == {"learned", *LEARNED_CHOICES}
+    semantic = _leaves(semantic_config(learned))
+    base = {k: v for k, v in rows["learned"].items() if k in semantic}
+    for row, turned_off in LEARNED_CHOICES.items():
+        changed = {k: v for k, v in rows[row].items() if k in semantic and base.get(k) != v}
+        assert changed == turned_off, row
+
+
+@pytest.mark.parametrize("option", ["schedule.stages.flow1.fresh_scenes=0.1", "schedule.stages.flow1.keep_best=100",
+                                    "schedule.stages.dm1.fresh_scenes=0.1", "schedule.stages.dm1.keep_best=100"])
+def test_fresh_scenes_and_keep_best_key_their_stage_and_the_later_ones_only(option):
+    """Set on a stage, either option keys that stage and (through the upstream keys) the later ones;
+    the earlier stages keep their keys. keep_best also keys the held-apart sets that choose."""
+    from demon_lab.pipeline.stages.schedule import stage_dirs
+
+    with initialize_config_dir(CONF, version_base="1.3"):
+        plain = [d.key for d in stage_dirs(compose("config", ["scale=cpu"]))]
+        changed = [d.key for d in stage_dirs(compose("config", ["scale=cpu", f"+{option}"]))]
+        other_val = [d.key for d in stage_dirs(compose("config", ["scale=cpu", f"+{option}",
+                                                                  "data.val=${data.test}"]))]
+    first = 0 if ".flow1." in option else 1
+    assert changed[:first] == plain[:first]
+    assert all(a != b for a, b in zip(plain[first:], changed[first:], strict=True))
+    assert (other_val == changed) == ("fresh_scenes" in option)
+
+
+@pytest.mark.slow
+def test_the_learned_design_trains_every_stage_keeping_its_best_nets_on_fresh_scenes(tmp_path):
+    """design=learned end to end at the smoke scale (its own data loader worker): every stage run
+    FINISHED, the stages with keep_best log which step they kept, and the fresh scenes that flow1
+    and dm1 drew were rendered into the cache beyond the set's own scenes."""
+    from demon_lab.app.job import run
+
+    steps = [f"scale.steps.{s}={n}" for s, n in (("flow1", 8), ("dm1", 8), ("flow2", 2), ("dm2", 2), ("iterative", 2),
+                                                 ("refine", 2))]
+    cache = tmp_path / "scenes"
+    overrides = [o for o in smoke_overrides(tmp_path) if not o.startswith("data.cache_dir=")]
+    cfg = compose_config([*overrides, "design=learned", *steps, f"data.cache_dir={cache}", "threads=1",
+                                         "schedule.stages.flow1.fresh_scenes=0.5", "schedule.stages.flow1.keep_best=4",
+                                         "schedule.stages.dm1.keep_best=4", "schedule.stages.iterative.keep_best=1"])
+    result = run(cfg)
+    assert result["status"] == "finished"
+    c = client(tmp_path)
+    stages = c.search_runs([c.get_experiment_by_name("default").experiment_id],
+                           filter_string=f"tags.`mlflow.parentRunId` = '{result['run_id']}'")
+    by_stage = {r.data.tags["demon_lab.stage"]: r for r in stages}
+    assert len(by_stage) == 6 and all(r.info.status == "FINISHED" for r in stages)
+    figures = c.get_run(result["run_id"]).data.metrics
+    for stage, metric in (("flow1", "epe"), ("dm1", "tran_deg"), ("iterative", "tran_deg")):
+        assert figures[f"stage/{stage}/keep_best_step"] in ({4.0, 8.0} if stage != "iterative" else {1.0, 2.0})
+        assert f"stage/{stage}/keep_best_{metric}" in figures and figures[f"stage/{stage}/keep_best_seconds"] >= 0
+    assert "stage/refine/keep_best_step" not in figures
+    assert result["figures"]["flow1"]["keep_best_step"] == figures["stage/flow1/keep_best_step"]
+    rendered = {int(p.stem) for p in cache.glob("synthetic/synthetic_*-*/*.pt")}
+    assert max(rendered) >= cfg.data.train_length  # scenes past the set's own, rendered as training drew them
