@@ -953,7 +953,8 @@ def test_the_learned_design_has_no_classical_prior_and_its_study_turns_each_choi
         others = [compose("config", []), compose("config", ["+experiment=cpu_departures", *DEMON_DESIGN])]
         rows = {}
         for run in spec["runs"]:
-            cfg = compose("config", run)
+            assert "seed=0,1,2" in run  # every row at 3 seeds (a sweep: composed here at seed 0)
+            cfg = compose("config", [o for o in run if not o.startswith("seed=")])
             rows[cfg.row] = _leaves(OmegaConf.to_container(cfg, resolve=True))
     assert (learned.model.flow1_prior, learned.model.dm1_prior) == (None, None)
     assert learned.model.correlation == [8, 2] and learned.model.flow2_prior == "previous"
