@@ -878,6 +878,22 @@ def test_multirun_has_one_parent_run_and_trains_once(tmp_path):
     stage_runs = [r for r in runs if r.data.tags.get("demon_lab.kind") == "stage"]
     assert len(stage_runs) == 6
     assert result.stdout.count("stage flow1: cached") == 1 and result.stdout.count("[demon_lab] results") == 2
+    # the sweep ends in the table of its own jobs: one row per job, the swept key, each job's last pass
+    # on synthetic_sun3d as its run logged it; the parent run holds the same table
+    printed = result.stdout.split("[demon_lab] the sweep's jobs on ")[1].split("\n\n")[0]
+    lines = printed.splitlines()
+    assert lines[0] == "synthetic_sun3d:" and lines[1].split() == ["iterations", "status", "pass", "L1-inv", "sc-inv",
+                                                                   "rot", "tran", "EPE"]
+    by_iterations = {r.data.tags["demon_lab.iterations"]: r.data.metrics for r in jobs}
+    for line in lines[3:]:
+        it, status, passes, *values = line.split()
+        assert status == "finished" and passes == it
+        logged = [by_iterations[it][f"test/synthetic_sun3d/it{it}/{c}"] for c in ("l1_inv", "sc_inv", "rot_deg",
+                                                                                  "tran_deg", "epe")]
+        assert [float(v) for v in values] == pytest.approx(logged, abs=5e-4)
+    assert [line.split()[0] for line in lines[3:]] == ["0", "2"]
+    on_parent = Path(c.download_artifacts(parents[0].info.run_id, "jobs.txt", str(tmp_path))).read_text()
+    assert on_parent.strip() == "the sweep's jobs on " + printed.strip()
 
 
 def test_keep_best_keeps_the_nets_of_the_lowest_held_apart_score_across_a_resume(tmp_path):

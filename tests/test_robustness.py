@@ -222,6 +222,8 @@ def test_a_failing_job_does_not_stop_the_sweep(tmp_path):
     assert len(errors) == 2 and "Traceback" not in result.stderr, result.stderr[-3000:]
     assert "stage flow1: non-finite loss at step" in errors[0] and "flow2=nan" in errors[0]
     assert "1 job(s) of the sweep failed" in errors[1] and "lr=1e+30" in errors[1]
+    rows = result.stdout.split("the sweep's jobs on ")[1].splitlines()[3:5]
+    assert [row.split()[:2] for row in rows] == [["1e+30", "FAILED"], ["0.00025", "finished"]]
     jobs, (parent,) = _jobs_and_parents(tmp_path)
     by_status = {r.info.status: r for r in jobs}
     assert sorted(by_status) == ["FAILED", "FINISHED"] and len(jobs) == 2
@@ -305,8 +307,13 @@ def test_the_sweep_verdict_counts_the_failed_job_returns_not_error_files(tmp_pat
     with pytest.raises(SystemExit) as exited:
         callback.on_multirun_end(config)
     assert exited.value.code == 1
-    assert capsys.readouterr().err.strip().splitlines() == [
+    captured = capsys.readouterr()
+    assert captured.err.strip().splitlines() == [
         "error: 1 job(s) of the sweep failed (each folder has error.txt): multirun/default/seed=1"]
+    # the table of the sweep's own jobs, in launch order, the failed one marked
+    table = captured.out.split("the sweep's jobs on ")[1].splitlines()
+    assert table[1].split()[:2] == ["seed", "status"]
+    assert [line.split()[:2] for line in table[3:6]] == [["0", "-"], ["1", "FAILED"], ["2", "-"]]
     parent = tracker.client.get_run(callback.parent)
     assert parent.info.status == "FAILED" and parent.data.tags[f"{TAG}jobs_failed_now"] == "1"
 

@@ -14,8 +14,9 @@ A failing job never stops the sweep: Hydra ends it ``FAILED`` (``demon_lab.app.j
 the sweeper launches the rest, handing each batch's JobReturns to ``on_jobs_returned`` in the
 sweep's own process, whatever the launcher (:mod:`demon_lab.app.sweeper`). ``on_multirun_end``
 attaches the study's report (its tables and figures, from every FINISHED run in the store:
-``report/`` in the parent run's artifacts, so the dashboard shows it), lists the jobs that failed
-this time, marks the parent FINISHED or FAILED and exits non-zero if any failed.
+``report/`` in the parent run's artifacts, so the dashboard shows it), prints the table of the
+sweep's own jobs and logs it on the parent run (``jobs.txt``), lists the jobs that failed this time,
+marks the parent FINISHED or FAILED and exits non-zero if any failed.
 """
 
 from __future__ import annotations
@@ -38,6 +39,7 @@ class MultirunTracking(Callback):
         self.tracker = None
         self.parent: str | None = None
         self.failed: list[str] = []  # the folders of this sweep's failed jobs
+        self.jobs: list[dict[str, Any]] = []  # every job of this sweep: overrides, status, run id, pass
         self.server = None
         self.served: str | None = None  # the address of self.server, which travels with the jobs
 
@@ -49,7 +51,7 @@ class MultirunTracking(Callback):
     def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
         from demon_lab.pipeline.tracking import TAG, Tracker
 
-        self.failed = []
+        self.failed, self.jobs = [], []
         if config.tracking.get("server"):
             from demon_lab.pipeline.tracking import LocalServer, TrackingError
 
@@ -96,6 +98,12 @@ class MultirunTracking(Callback):
         """In the sweep's process, after each batch (:mod:`demon_lab.app.sweeper`): the failed jobs'
         folders, each with its ``error.txt``, as the command line shows them."""
         for r in job_returns:
+            returned = r.return_value if r.status == JobStatus.COMPLETED and isinstance(r._return_value, dict) else {}
+            cfg = r.cfg or {}
+            chain = cfg.get("method", "demon") == "demon"  # (a classical method's summary has no passes)
+            self.jobs.append({"overrides": list(r.overrides or []), "run_id": returned.get("run_id"),
+                              "status": returned.get("status") or ("FAILED" if r.status == JobStatus.FAILED else "-"),
+                              "pass": cfg.get("iterations", "-") if chain else "baseline"})
             if r.status == JobStatus.FAILED:
                 folder = Path(r.hydra_cfg.hydra.runtime.output_dir)
                 self.failed.append(str(folder.relative_to(Path.cwd()) if folder.is_relative_to(Path.cwd())
@@ -114,6 +122,7 @@ class MultirunTracking(Callback):
             self.tracker.set_tags(self.parent, {f"{TAG}jobs_finished": counts["FINISHED"],
                                                 f"{TAG}jobs_failed_now": len(failed)})
             self._publish_study(config)
+            self._jobs_table()
             self.tracker.finish(self.parent, "FAILED" if failed else "FINISHED")
             log.info("sweep run %s: %d job runs FINISHED, %d FAILED%s", self.parent, counts["FINISHED"],
                      counts["FAILED"] - retried,
@@ -125,6 +134,24 @@ class MultirunTracking(Callback):
             print(f"error: {len(failed)} job(s) of the sweep failed (each folder has error.txt): {listing}",
                   file=sys.stderr, flush=True)
             sys.exit(1)
+
+    def _jobs_table(self) -> None:
+        """The table of this sweep's own jobs (:func:`demon_lab.reporting.tables.sweep_table`): printed,
+        and logged on the parent run as ``jobs.txt``."""
+        from demon_lab.reporting.tables import sweep_table
+
+        if not self.jobs:
+            return
+        metrics = {}
+        for job in self.jobs:
+            if job["run_id"]:
+                try:
+                    metrics[job["run_id"]] = self.tracker.client.get_run(job["run_id"]).data.metrics
+                except Exception as e:  # (a run removed from the store meanwhile: its row shows no values)
+                    log.warning("sweep table: run %s: %s", job["run_id"], e)
+        table = sweep_table(self.jobs, metrics)
+        print(f"[demon_lab] {table}\n", flush=True)
+        self.tracker.log_text(self.parent, table + "\n", "jobs.txt")
 
     def _publish_study(self, config: DictConfig) -> None:
         """The study's report (``python -m demon_lab.report NAME``, from every FINISHED run in the

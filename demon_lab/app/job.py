@@ -242,14 +242,15 @@ def known_errors() -> tuple[type[BaseException], ...]:
     return ConfigError, DataError, TrackingError, CheckpointError, TrainingDiverged
 
 
-def main_task(cfg: DictConfig) -> None:
+def main_task(cfg: DictConfig) -> dict[str, Any] | None:
     """Hydra task. A single run exits non-zero with one line on a configuration, data,
     tracking-store or checkpoint error or diverged training, and with the traceback on anything
     else. In a multirun a failing job never stops the sweep: its run is
     FAILED with the error recorded, it prints one line, leaves ``error.txt`` (with the traceback)
     in its output folder and raises :class:`JobFailed`, so that Hydra ends it ``FAILED``; the sweep
     goes on (:mod:`demon_lab.app.sweeper`), and its end lists the failures and exits non-zero
-    (:class:`demon_lab.app.callbacks.MultirunTracking`)."""
+    (:class:`demon_lab.app.callbacks.MultirunTracking`). Returns the job's status and run id (what
+    the sweep's table of its jobs reads)."""
     import traceback
 
     job_dir = _hydra_output_dir(multirun_only=True)
@@ -269,7 +270,7 @@ def main_task(cfg: DictConfig) -> None:
                 server = None  # the sweep's server is up and stops with the sweep
             else:
                 server.start()
-        run(cfg)
+        result = run(cfg)
     except Exception as e:
         known = isinstance(e, known_errors())
         if marker is None:
@@ -288,3 +289,4 @@ def main_task(cfg: DictConfig) -> None:
             server.stop()
     if failure is not None:
         raise failure
+    return {"status": result.get("status"), "run_id": result.get("run_id")}

@@ -43,6 +43,35 @@ def results_table(summary: Mapping[str, Mapping[str, float]], passes: Sequence[i
     return text_table(header, rows)
 
 
+SWEEP_COLUMNS = ("l1_inv", "sc_inv", "rot_deg", "tran_deg", "epe")
+"""The metrics a sweep's table of its jobs shows (of each job's last pass, on one test set)."""
+SWEEP_TEST_SET = "synthetic_sun3d"
+"""The test set a sweep's table shows where its jobs have it (else the first, by name)."""
+
+
+def sweep_table(jobs: Sequence[Mapping[str, Any]], metrics: Mapping[str, Mapping[str, float]]) -> str:
+    """The table a sweep prints when its jobs end: one row per job, the overrides that differ between
+    its jobs as columns (all of them if none does), its status (finished, skipped: an earlier
+    FINISHED run, FAILED), and :data:`SWEEP_COLUMNS` of the job's last pass (``pass``: its
+    ``iterations``, ``baseline`` for a classical method) on one test set, read from its run's metrics
+    (``metrics``: run id -> name -> value). ``jobs``: ``overrides``, ``status``, ``run_id`` (None for a
+    failed job) and ``pass``."""
+    values = [dict(o.lstrip("+~").split("=", 1) for o in job["overrides"] if "=" in o) for job in jobs]
+    keys = list(dict.fromkeys(k for v in values for k in v))
+    varying = [k for k in keys if len({v.get(k) for v in values}) > 1] or keys
+    logged = {name.split("/")[1] for job in jobs for name in metrics.get(job.get("run_id") or "", {})
+              if name.startswith("test/")}
+    test_set = SWEEP_TEST_SET if SWEEP_TEST_SET in logged else min(logged, default="-")
+    header = [*varying, "status", "pass", *[column(c).text for c in SWEEP_COLUMNS]]
+    rows = []
+    for job, given in zip(jobs, values, strict=True):
+        found = metrics.get(job.get("run_id") or "", {})
+        prefix = "" if job["pass"] == "baseline" else f"it{job['pass']}/"
+        rows.append([*(given.get(k, "-") for k in varying), job["status"], str(job["pass"]),
+                     *(number(found.get(f"test/{test_set}/{prefix}{c}", math.nan)) for c in SWEEP_COLUMNS)])
+    return f"the sweep's jobs on {test_set}:\n" + text_table(header, rows, left=len(varying) + 2)
+
+
 class Cell(NamedTuple):
     """One aggregated cell as plain Python numbers (``csv`` writes numpy floats as ``np.float64(...)``)."""
 
