@@ -95,6 +95,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
         if existing:
             log.info("skipped: run key %s already has the FINISHED run %s (experiment %r); pass force=true to run "
                      "it again", key, existing, cfg.experiment)
+            _print_study_rows(cfg)
             return {"status": "skipped", "run_id": existing, "run_key": key}
     record = _run_id_file()
     persisted = record.read_text().strip() if record is not None and record.is_file() else None
@@ -113,6 +114,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
         tracker.log_text(run_id, OmegaConf.to_yaml(cfg, resolve=True), "config.yaml")
         result = _train_and_evaluate(cfg, tracker, run_id)
         tracker.finish(run_id, "FINISHED")
+        _print_study_rows(cfg)
         return {"status": "finished", "run_id": run_id, "run_key": key, **result}
     except BaseException as e:
         tracker.fail(run_id, e)
@@ -224,6 +226,26 @@ def _run_id_file() -> Path | None:
     """``run_id`` in the job's output folder: a re-issued job finds its run."""
     folder = _hydra_output_dir()
     return folder / "run_id" if folder is not None else None
+
+
+def _print_study_rows(cfg: DictConfig) -> None:
+    """A single job (not a sweep's: the sweep prints its own table) of an experiment that a study
+    reports: the study's rows of that experiment from the store, this job's among them
+    (:func:`demon_lab.reporting.report.study_rows`). A table that cannot be built is a warning."""
+    if _parent_run() is not None:
+        return
+    from demon_lab.reporting import report
+
+    study = report.study_of(str(cfg.experiment))
+    if study is None:
+        return
+    try:
+        text = report.study_rows(study, cfg.tracking.uri, str(cfg.experiment))
+    except Exception as e:  # the job's own result is recorded and printed either way
+        log.warning("study %s: no table of its rows (%s: %s)", study, type(e).__name__, e)
+        return
+    if text:
+        print(f"[demon_lab] {text}\n", flush=True)
 
 
 def _parent_run() -> str | None:
