@@ -47,6 +47,7 @@ class StageValidation(L.Callback):
         self.every, self.batch_size = int(every_n_steps), int(batch_size)
         self._zero_logged = False
         self._last: tuple[int, dict[str, float]] | None = None
+        self.last_seconds = 0.0  # what scoring the last scored step took (whichever callback asked first)
 
     def due(self, trainer) -> bool:
         """Whether this step is one to score: every ``every_n_steps`` and the stage's last."""
@@ -58,6 +59,7 @@ class StageValidation(L.Callback):
         once per step (the curves and :class:`KeepBest` share a step's scores)."""
         if self._last is not None and self._last[0] == trainer.global_step:
             return dict(self._last[1])
+        start = time.perf_counter()
         chain = module.chain
         was_training = {name: net.training for name, net in module.nets()}
         chain_training = chain.training
@@ -73,6 +75,7 @@ class StageValidation(L.Callback):
             for name, net in module.nets():
                 net.train(was_training[name])
         self._last = (trainer.global_step, values)
+        self.last_seconds = time.perf_counter() - start
         return dict(values)
 
     def on_train_batch_end(self, trainer, module, outputs, batch, batch_idx) -> None:
@@ -126,7 +129,8 @@ class KeepBest(L.Callback):
     :data:`BEST_METRIC` averaged over the held-apart sets; the trained nets of the lowest score so far
     are written to ``path`` (with the step and the score, so a resumed stage keeps its best), and
     :meth:`restore` puts them back into the chain when the stage ends. ``seconds`` is what scoring
-    cost this process (the stage logs it: the option's price)."""
+    and saving the best nets cost this process (the stage logs it: the option's price), the scoring
+    counted in full where the held-apart curves scored the same step first."""
 
     def __init__(self, scorer: StageValidation, kind: str, every: int, path, nets: Sequence[str]):
         self.scorer, self.metric, self.every = scorer, BEST_METRIC[kind], int(every)
@@ -138,8 +142,9 @@ class KeepBest(L.Callback):
         step = trainer.global_step
         if step % self.every and step < trainer.max_steps:
             return
-        start = time.perf_counter()
         values = self.scorer.evaluate(trainer, module)
+        self.seconds += self.scorer.last_seconds  # (counted here too where the curves scored this step first)
+        start = time.perf_counter()
         score = _mean([v for k, v in values.items() if k.endswith(f"/{self.metric}")])
         if score < self.best:
             self.best, self.best_step = score, step
