@@ -1,0 +1,171 @@
+"""What a report's numbers come from: the design each row measures, its configuration's digest,
+the code that ran it and the runs themselves.
+
+A design is named by its departures from DeMoN's design: the model options that give a net a prior
+or a correlation front, and the stage options that a stage of DeMoN's schedule leaves out (2-D
+layers first, fresh scenes, keeping the best held-apart nets, ...), each where it is off its
+default. The designs the project ships at the ``cpu`` scale (the profile with its classical priors,
+``design=learned``) are composed from ``conf/`` and named when a run's departures are exactly
+theirs; any other set is named by the nearest one and what differs from it.
+
+A report row whose runs measure different designs is refused (:class:`DesignMixError`): its mean
+would describe no design. Runs of other code or scene-generator versions never share a row either:
+the report counts only this checkout's (:func:`demon_lab.reporting.report.current_versions`).
+"""
+
+from __future__ import annotations
+
+import functools
+import re
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+import pandas as pd
+
+from demon_lab.pipeline.identity import digest, is_semantic
+from demon_lab.pipeline.schema import PRIOR_KEYS
+
+DEMON = "DeMoN's design"
+DEPARTURE_MODEL_KEYS = tuple(f"model.{k}" for k in (*PRIOR_KEYS, "correlation"))
+"""The model options that depart from DeMoN's nets where set."""
+DEPARTURE_STAGE_OPTION = re.compile(
+    r"schedule\.stages\.\w+\.(layers_first|restarts|easy_first|level5_fade|gt_flow_warmup|fresh_scenes|keep_best)$")
+"""The stage options a stage of DeMoN's schedule leaves out, which depart from it where set."""
+OFF = ("None", "nan", "0", "0.0", "")
+NAMED = {"the cpu profile": ["scale=cpu"], "the learned design": ["scale=cpu", "design=learned"]}
+"""The designs the project ships at the cpu scale, as the overrides that compose them."""
+COMMIT_TAG = "tags.mlflow.source.git.commit"
+
+
+class DesignMixError(ValueError):
+    """A report row whose runs measure more than one design (one line, naming the row and designs)."""
+
+
+def departures(params: Mapping[str, Any]) -> dict[str, str]:
+    """A run's departures from DeMoN's design: its params (dotted keys, string values) that
+    :data:`DEPARTURE_MODEL_KEYS` or :data:`DEPARTURE_STAGE_OPTION` name, where not off."""
+    out = {}
+    for key, value in params.items():
+        if (key in DEPARTURE_MODEL_KEYS or DEPARTURE_STAGE_OPTION.match(key)) and str(value) not in OFF:
+            out[key] = str(value)
+    return dict(sorted(out.items()))
+
+
+@functools.cache
+def named_designs() -> dict[str, dict[str, str]]:
+    """The departures of each design in :data:`NAMED`, composed from the package's configs."""
+    from hydra import compose, initialize_config_dir
+    from omegaconf import OmegaConf
+
+    from demon_lab.pipeline.config import register_resolvers
+    from demon_lab.pipeline.tracking import flatten
+    from demon_lab.resources import CONF
+
+    register_resolvers()
+    designs = {}
+    with initialize_config_dir(str(CONF), version_base="1.3"):
+        for name, overrides in NAMED.items():
+            cfg = compose("config", overrides)
+            designs[name] = departures(flatten(OmegaConf.to_container(cfg, resolve=True)))
+    return designs
+
+
+def design_name(found: Mapping[str, str]) -> str:
+    """``found`` departures as a name: DeMoN's design or a shipped one where they are exactly its,
+    else the nearest of these with what differs (``name with k=v``, ``name without k``)."""
+    candidates = {DEMON: {}, **named_designs()}
+    for name, wanted in candidates.items():
+        if dict(found) == wanted:
+            return name
+
+    def distance(wanted: Mapping[str, str]) -> int:
+        return len(set(wanted.items()) ^ set(found.items()))
+
+    name, wanted = min(candidates.items(), key=lambda item: distance(item[1]))
+    changed = [f"{k}={v}" for k, v in found.items() if wanted.get(k) != v]
+    dropped = [k for k in wanted if k not in found]
+    return name + "".join([f" with {', '.join(changed)}" if changed else "",
+                           f" without {', '.join(dropped)}" if dropped else ""])
+
+
+def run_params(run: pd.Series) -> dict[str, str]:
+    """A run of ``mlflow.search_runs``'s frame: its params (dotted keys), as logged."""
+    return {k.removeprefix("params."): v for k, v in run.items()
+            if k.startswith("params.") and isinstance(v, str)}
+
+
+def config_digest(params: Mapping[str, str]) -> str:
+    """A digest of a run's composed configuration as it logged it, without its seed and the keys
+    that change no result: the runs of one row at different seeds share it."""
+    return digest({k: v for k, v in params.items() if k != "seed" and is_semantic(k)})
+
+
+def rows(spec: Mapping[str, Any], used: pd.DataFrame) -> list[dict[str, Any]]:
+    """Per table row with counted runs: its design, config digest(s), seeds and run ids. A row whose
+    runs measure two designs raises :class:`DesignMixError`."""
+    out = []
+    for table in spec["tables"]:
+        for row in table["rows"]:
+            runs = used[(used["table"] == table["name"]) & (used["row"] == row["label"])]
+            if runs.empty:
+                continue
+            params = [run_params(r) for _, r in runs.iterrows()]
+            designs = [design_name(departures(p)) for p in params]
+            if len(set(designs)) > 1:
+                seeds = {d: [str(s) for s, dd in zip(runs["seed"], designs, strict=True) if dd == d]
+                         for d in dict.fromkeys(designs)}
+                mixed = "; ".join(f"{d} (seed {', '.join(s)})" for d, s in seeds.items())
+                raise DesignMixError(f"{spec['name']}: table {table['name']}, row {row['label']!r} has runs of "
+                                     f"different designs, which one row cannot average: {mixed}")
+            out.append({"table": table["name"], "row": row["label"], "design": designs[0],
+                        "config": ", ".join(dict.fromkeys(config_digest(p) for p in params)),
+                        "seeds": ", ".join(str(s) for s in runs["seed"]),
+                        "runs": " ".join(runs["run_id"])})
+    return out
+
+
+def commits(used: pd.DataFrame) -> str:
+    """The code commits the counted runs were made with (as MLflow tagged them)."""
+    if COMMIT_TAG not in used.columns:
+        return "not recorded (runs of an installed package, not a checkout)"
+    found = used[COMMIT_TAG].dropna().unique()
+    lacking = int(used[COMMIT_TAG].isna().sum())
+    text = ", ".join(c[:12] for c in sorted(found)) or "none recorded"
+    return text + (f"; {lacking} run(s) of an installed package, not a checkout" if lacking and len(found) else "")
+
+
+def markdown(entries: Sequence[Mapping[str, Any]], used: pd.DataFrame, versions: str, archive: str | None) -> str:
+    """The report's provenance section."""
+    where = (f"the archive {archive} (`python -m demon_lab.report --import {archive}` adds them to a store)"
+             if archive else "the MLflow store the report read")
+    lines = ["## Provenance\n\n",
+             f"- designs: {'; '.join(dict.fromkeys(e['design'] for e in entries)) or '-'}\n",
+             f"- code: commit {commits(used)}; {versions}\n",
+             f"- runs: {where}; config: a digest of each row's composed configuration (the seed aside)\n\n",
+             "| table | row | design | config | seeds | run ids |\n|---|---|---|---|---|---|\n"]
+    lines += [f"| {e['table']} | {e['row']} | {e['design']} | {e['config']} | {e['seeds']} | {e['runs']} |\n"
+              for e in entries]
+    return "".join(lines)
+
+
+def footer(entries: Sequence[Mapping[str, Any]], used: pd.DataFrame, versions: str) -> str:
+    """One line for a figure: its designs, code and versions."""
+    designs = "; ".join(dict.fromkeys(e["design"] for e in entries)) or "-"
+    return f"{designs} | commit {commits(used)} | {versions}"
+
+
+def stamp_figure(path, line: str) -> None:
+    """Add ``line`` under a report figure, and to its PNG metadata (``Description``)."""
+    from PIL import Image, ImageDraw, PngImagePlugin
+
+    image = Image.open(path).convert("RGB")
+    strip = 14 * (1 + len(line) * 6 // max(image.width, 1))
+    stamped = Image.new("RGB", (image.width, image.height + strip), "white")
+    stamped.paste(image, (0, 0))
+    draw = ImageDraw.Draw(stamped)
+    per_line = max(1, image.width // 6)
+    for i in range(0, len(line), per_line):
+        draw.text((4, image.height + 1 + 14 * (i // per_line)), line[i:i + per_line], fill="dimgray")
+    info = PngImagePlugin.PngInfo()
+    info.add_text("Description", line)
+    stamped.save(path, pnginfo=info)
