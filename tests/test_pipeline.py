@@ -128,8 +128,9 @@ def test_stage_runs_record_their_loss_curves(smoke_run):
 
 
 def test_time_to_accuracy_figure_reads_the_flow1_stage_of_each_counted_run(smoke_run, tmp_path, monkeypatch):
-    """The figure plots each counted run's flow1 held-apart curve (EPE / zero-flow EPE) against the
-    minutes since its stage run started: the values and times of the stage run's metric history; a run
+    """The figure plots each counted run's flow1 held-apart curve (EPE / zero-flow EPE), and its dm1
+    translation curve, against the minutes since each stage run started: the values and times of the
+    stage runs' metric histories; a run
     whose flow1 came from the cache is found through its stage key; rows reading the same flow1 stages
     share one line, labelled with both."""
     import shutil
@@ -160,8 +161,8 @@ def test_time_to_accuracy_figure_reads_the_flow1_stage_of_each_counted_run(smoke
     monkeypatch.setattr(matplotlib.axes.Axes, "plot", plot)
     paths = report.report("tta", uri, tmp_path / "out", tmp_path)
     assert (tmp_path / "out" / "figures" / "tta_time_to_accuracy.png") in paths.values()
-    (label, minutes, ratios), = drawn
-    assert label == "smoke; twin"
+    (label, minutes, ratios), (dm1_label, dm1_minutes, translations) = drawn  # flow1's panel, then dm1's
+    assert label == dm1_label == "smoke; twin"
     c = client(tmp)
     stage = figures.flow1_stage_run(c, {"run_id": result["run_id"],
                                                "experiment_id": c.get_run(result["run_id"]).info.experiment_id})
@@ -171,6 +172,12 @@ def test_time_to_accuracy_figure_reads_the_flow1_stage_of_each_counted_run(smoke
     assert ratios == pytest.approx([v / zero for _, v in history])
     assert minutes == pytest.approx([(t - stage.info.start_time) / 60000 for t, _ in history])
     assert all(m >= 0 for m in minutes)
+    dm1 = figures.stage_run(c, {"run_id": result["run_id"],
+                                "experiment_id": c.get_run(result["run_id"]).info.experiment_id}, "dm1")
+    dm1_history = sorted((m.timestamp, m.value) for m in c.get_metric_history(dm1.info.run_id,
+                                                                              "val/synthetic_sun3d/tran_deg"))
+    assert translations == pytest.approx([v for _, v in dm1_history])
+    assert dm1_minutes == pytest.approx([(t - dm1.info.start_time) / 60000 for t, _ in dm1_history])
     job = c.get_run(result["run_id"])
     cached = {"run_id": "a-job-that-found-flow1-in-the-cache", "experiment_id": job.info.experiment_id,
               "artifact_uri": job.info.artifact_uri}

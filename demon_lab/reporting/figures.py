@@ -215,66 +215,89 @@ def figure_qualitative(spec, result, path: Path, per_row_limit: int = 1) -> list
     return outputs
 
 
-def flow1_stage_run(client, run: Mapping[str, Any]):
-    """The MLflow run of the stage that trained a job run's ``flow1``: its own child run, or, where the
-    job found the stage in the cache, the stage run of the same key (the job that trained it); None if
-    the store has neither."""
+def stage_run(client, run: Mapping[str, Any], stage: str = "flow1"):
+    """The MLflow run of the stage that trained a job run's ``stage`` net: its own child run, or, where
+    the job found the stage in the cache, the stage run of the same key (the job that trained it);
+    None if the store has neither."""
     from demon_lab.pipeline.tracking import TAG
 
     children = client.search_runs([run["experiment_id"]], filter_string=(
-        f"tags.`mlflow.parentRunId` = '{run['run_id']}' and tags.`{TAG}stage` = 'flow1'"))
+        f"tags.`mlflow.parentRunId` = '{run['run_id']}' and tags.`{TAG}stage` = '{stage}'"))
     if children:
         return children[0]
     keys = local_artifact(run, "stage_keys.json")
     if keys is None:
         return None
-    key = json.loads(keys.read_text()).get("flow1", {}).get("key")
+    key = json.loads(keys.read_text()).get(stage, {}).get("key")
     experiments = [e.experiment_id for e in client.search_experiments()]
     found = client.search_runs(experiments, filter_string=f"tags.`{TAG}stage_key` = '{key}'",
                                order_by=["attributes.start_time ASC"]) if key else []
     return found[0] if found else None
 
 
+def flow1_stage_run(client, run: Mapping[str, Any]):
+    """:func:`stage_run` of ``flow1``."""
+    return stage_run(client, run, "flow1")
+
+
+TIME_PANELS = (("flow1", "epe", "held-apart EPE / zero-flow EPE"), ("dm1", "tran_deg", "held-apart translation (°)"))
+"""The time-to-accuracy figure's panels: a stage, its held-apart metric, the axis label."""
+
+
 def figure_time_to_accuracy(spec, result, uri: str, path: Path, dataset: str = "synthetic_sun3d") -> list[Path]:
-    """The held-apart EPE of each row's ``flow1`` (``val/<dataset>/epe`` as a multiple of that set's
-    zero-flow EPE, logged by the stage every ``tracking.val_every_n_steps``) against the minutes since
-    its stage run started, one line per seed (rows whose jobs read the same flow1 stages share them): how
-    soon each design leaves the zero-flow plateau."""
+    """The held-apart curves of each row's bootstrap stages against the minutes since the stage's run
+    started, one line per seed (rows whose jobs read the same stages share them): ``flow1``'s EPE
+    (``val/<dataset>/epe`` as a multiple of that set's zero-flow EPE: how soon a design leaves the
+    zero-flow plateau) and, where the rows trained it, ``dm1``'s translation error
+    (``val/<dataset>/tran_deg``: how soon its motion reads the flow). Logged by the stages every
+    ``tracking.val_every_n_steps``."""
     import matplotlib.pyplot as plt
     from mlflow.tracking import MlflowClient
 
     client = MlflowClient(tracking_uri=uri)
     table = spec["tables"][0]
-    # rows whose jobs read the same flow1 stages (a departure after flow1) share one set of lines
-    groups: dict[tuple[str, ...], tuple[list[str], list]] = {}
-    for label, runs in _counted(result, table):
-        stages = [s for s in (flow1_stage_run(client, run) for _, run in runs.sort_values("seed").iterrows())
-                  if s is not None]
-        if stages:
-            groups.setdefault(tuple(s.info.run_id for s in stages), ([], stages))[0].append(label)
-    fig, ax = plt.subplots(figsize=(7.5, 4.2))
-    colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
-    drawn = 0
-    for k, (labels, stages) in enumerate(groups.values()):
-        for n, stage in enumerate(stages):
-            history = client.get_metric_history(stage.info.run_id, f"val/{dataset}/epe")
-            zero = client.get_metric_history(stage.info.run_id, f"val/{dataset}/zero_flow_epe")
-            if not history or not zero:
-                continue
-            points = sorted((m.timestamp, m.value) for m in history)
-            minutes = [(t - stage.info.start_time) / 60000 for t, _ in points]
-            ax.plot(minutes, [v / zero[0].value for _, v in points], color=colours[k % len(colours)], lw=1.2,
-                    marker="o", ms=2, label="; ".join(labels) if n == 0 else None)
-            drawn += 1
-    if not drawn:
-        plt.close(fig)
+    curves = []  # per panel: [(labels, [(minutes, values)])]
+    for stage, metric, _ in TIME_PANELS:
+        groups: dict[tuple[str, ...], tuple[list[str], list]] = {}
+        for label, runs in _counted(result, table):
+            stages = [s for s in (stage_run(client, run, stage) for _, run in runs.sort_values("seed").iterrows())
+                      if s is not None]
+            if stages:
+                groups.setdefault(tuple(s.info.run_id for s in stages), ([], stages))[0].append(label)
+        lines = []
+        for labels, stages in groups.values():
+            points = []
+            for run in stages:
+                history = client.get_metric_history(run.info.run_id, f"val/{dataset}/{metric}")
+                zero = (client.get_metric_history(run.info.run_id, f"val/{dataset}/zero_flow_epe")
+                        if metric == "epe" else [None])
+                if history and zero:
+                    scale = zero[0].value if metric == "epe" else 1.0
+                    timed = sorted((m.timestamp, m.value) for m in history)
+                    start = run.info.start_time
+                    points.append(([(t - start) / 60000 for t, _ in timed], [v / scale for _, v in timed]))
+            if points:
+                lines.append((labels, points))
+        curves.append(lines)
+    panels = [i for i, lines in enumerate(curves) if lines]
+    if not panels:
         return []
-    ax.axhline(1.0, color="k", lw=0.8, ls=":")
-    ax.axhline(0.5, color="k", lw=0.8, ls="--")
-    ax.set_xlabel("wall-clock minutes of the flow1 stage (held-apart scoring included)")
-    ax.set_ylabel("held-apart EPE / zero-flow EPE")
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=6)
-    fig.suptitle(f"{spec['title']}\nflow1's held-apart EPE on {dataset}'s validation scenes against time, "
-                 "one line per seed (rows that share flow1 share lines)", fontsize=8)
+    fig, axes = plt.subplots(1, len(panels), figsize=(7.5 * len(panels), 4.2), squeeze=False)
+    colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    for ax, i in zip(axes[0], panels, strict=True):
+        stage, metric, ylabel = TIME_PANELS[i]
+        for k, (labels, points) in enumerate(curves[i]):
+            for n, (minutes, values) in enumerate(points):
+                ax.plot(minutes, values, color=colours[k % len(colours)], lw=1.2, marker="o", ms=2,
+                        label="; ".join(labels) if n == 0 else None)
+        if metric == "epe":
+            ax.axhline(1.0, color="k", lw=0.8, ls=":")
+            ax.axhline(0.5, color="k", lw=0.8, ls="--")
+        ax.set_xlabel(f"wall-clock minutes of the {stage} stage (held-apart scoring included)")
+        ax.set_ylabel(ylabel)
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=6)
+    shown = " and ".join(("flow1's held-apart EPE", "dm1's held-apart translation")[i] for i in panels)
+    fig.suptitle(f"{spec['title']}\n{shown} on {dataset}'s validation scenes against time, one line per seed "
+                 "(rows that share a stage share its lines)", fontsize=8)
     return [_save(fig, path / f"{spec['name']}_time_to_accuracy.png")]

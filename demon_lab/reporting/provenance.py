@@ -136,8 +136,8 @@ def commits(used: pd.DataFrame) -> str:
 
 def markdown(entries: Sequence[Mapping[str, Any]], used: pd.DataFrame, versions: str, archive: str | None) -> str:
     """The report's provenance section."""
-    where = (f"the archive {archive} (`python -m demon_lab.report --import {archive}` adds them to a store)"
-             if archive else "the MLflow store the report read")
+    where = (f"the archive [{archive}]({archive}) beside this report (`python -m demon_lab.report --import "
+             f"reports/{archive}` adds them to a store)" if archive else "the MLflow store the report read")
     lines = ["## Provenance\n\n",
              f"- designs: {'; '.join(dict.fromkeys(e['design'] for e in entries)) or '-'}\n",
              f"- code: commit {commits(used)}; {versions}\n",

@@ -468,7 +468,7 @@ def report(name: str, uri: str, out_dir: Path, directory: Path = STUDIES,
     except provenance.DesignMixError as e:
         raise ReportError(str(e)) from None
     archives = sorted((out_dir / "runs").glob(f"*{name}*.zip")) if (out_dir / "runs").is_dir() else []
-    result["archive"] = f"{out_dir}/runs/{archives[0].name}" if archives else None
+    result["archive"] = f"runs/{archives[0].name}" if archives else None  # (relative to the report)
     failed = runs[runs["status"] == "FAILED"]
     superseded = _superseded(failed, spec, runs, result["used"])
     result["rerun"] = int(superseded.sum())
