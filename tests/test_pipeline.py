@@ -544,9 +544,10 @@ def test_only_the_cpu_profile_departs_and_the_departures_study_turns_each_depart
         assert {k: cpu.model[k] for k in four} == four and cpu.trainer.reuse_frozen is True
         rows = {}
         for run in spec["runs"]:
-            cfg = compose("config", ["scale=cpu", *run])
+            cfg = compose("config", ["scale=cpu", *(o for o in run if not o.startswith("seed="))])
             rows[cfg.row] = {k: cfg.model[k] for k in four}
-    assert rows["profile"] == four and rows["demon"] == dict.fromkeys(four)
+            assert cfg.train is (cfg.row != "untrained")
+    assert rows["profile"] == rows["untrained"] == four and rows["demon"] == dict.fromkeys(four)
     assert rows["no_flow1_prior"] == {**four, "flow1_prior": None, "dm1_prior": "ransac"}
     for key in ("dm1_prior", "flow2_prior", "dm2_prior"):
         assert rows[f"no_{key}"] == {**four, key: None}
@@ -957,6 +958,7 @@ LEARNED_CHOICES = {  # the study's row -> what it turns off, as the row's overri
     "profile_steps": {"scale.steps.flow1": 5000, "scale.steps.dm1": 2500,  # (and the stages that read them)
                       "schedule.stages.flow1.steps": 5000, "schedule.stages.dm1.steps": 2500},
     "no_previous": {"model.flow2_prior": None, "model.dm2_prior": None},
+    "untrained": {"train": False},
 }
 
 
@@ -1044,3 +1046,35 @@ def test_the_learned_design_trains_every_stage_keeping_its_best_nets_on_fresh_sc
     assert result["figures"]["flow1"]["keep_best_step"] == figures["stage/flow1/keep_best_step"]
     rendered = {int(p.stem) for p in cache.glob("synthetic/synthetic_*-*/*.pt")}
     assert max(rendered) >= cfg.data.train_length  # scenes past the set's own, rendered as training drew them
+
+
+def test_the_profiles_priors_alone_are_scored_beside_the_chain_and_change_none_of_its_rows(tmp_path, monkeypatch):
+    """With both bootstrap priors, the evaluation scores the priors alone (no net) as pass 'priors':
+    the untrained chain's pass 0 reads the same motion (dm1's correction starts at none), so their
+    motion errors agree; the chain's own rows are those of an evaluation without the priors row, digit
+    for digit; a chain without the priors has no such row, nor does an oracle's."""
+    from demon_lab.data.datasets import SyntheticDataset
+    from demon_lab.nets.chain import DeMoN
+    from demon_lab.pipeline.evaluate import evaluate_dataset, summarize
+    from demon_lab.pipeline.stages.schedule import build_chain
+
+    cfg = compose_config(smoke_overrides(tmp_path, "model.flow1_prior=dis_x2", "model.dm1_prior=ransac_prior"))
+    chain = build_chain(cfg).eval()
+    dataset = SyntheticDataset("synthetic_sun3d", split="test", length=3, size=(64, 64), cache_dir=shared_renders())
+    rows, _ = evaluate_dataset(chain, dataset, iterations=1)
+    priors = [r for r in rows if r["it"] == "priors"]
+    first = [r for r in rows if r["it"] == 0]
+    assert len(priors) == 3 and [r["id"] for r in priors] == [r["id"] for r in first]
+    for p, c in zip(priors, first, strict=True):
+        assert p["rot_deg"] == pytest.approx(c["rot_deg"], abs=1e-3) and p["tran_deg"] == pytest.approx(c["tran_deg"],
+                                                                                                          abs=1e-3)
+        assert math.isfinite(p["epe"]) and math.isfinite(p["sc_inv"])
+    summary = summarize(rows, 1)
+    assert summary["priors/tran_deg"] == pytest.approx(sum(r["tran_deg"] for r in priors) / 3)
+    monkeypatch.setattr(DeMoN, "priors_alone", lambda self, pair, intrinsics: None)
+    without, _ = evaluate_dataset(chain, dataset, iterations=1)
+    assert without == [r for r in rows if r["it"] != "priors"]
+    monkeypatch.undo()
+    assert not [r for r in evaluate_dataset(chain, dataset, iterations=0, oracle="flow")[0] if r["it"] == "priors"]
+    plain = build_chain(compose_config(smoke_overrides(tmp_path))).eval()
+    assert not [r for r in evaluate_dataset(plain, dataset, iterations=0)[0] if r["it"] == "priors"]

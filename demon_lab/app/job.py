@@ -174,6 +174,8 @@ def _train_and_evaluate(cfg: DictConfig, tracker, run_id: str) -> dict[str, Any]
     tracker.log_metrics(run_id, {f"test/{name}/{k}": v for name, values in summary.items() for k, v in values.items()})
     if cfg.method == "demon":
         passes = [*range(int(cfg.iterations) + 1), *(["refined"] if refined else [])]
+        if any(f"priors/{k}" in values for values in summary.values() for k in ("epe", "tran_deg")):
+            passes = ["priors", *passes]  # the profile's priors alone, before the chain's passes
         what = f"{cfg.iterations} iterations{', oracle ' + str(cfg.oracle) if cfg.oracle else ''}"
         pictured = "refined depth" if refined else f"pass {cfg.iterations}"
     else:

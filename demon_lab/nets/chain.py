@@ -52,6 +52,7 @@ class Prediction:
 class ChainOutput:
     passes: list[Prediction]  # bootstrap, then one per iteration
     refined: torch.Tensor | None  # (B, 1, H, W) inverse depth (v2: (B, 4, H, W) with normals); None unrefined
+    priors: Prediction | None = None  # the classical priors alone, no net (DeMoN.priors_alone), where asked
 
 
 def finite(x: torch.Tensor) -> torch.Tensor:
@@ -272,10 +273,28 @@ class DeMoN(nn.Module):
     def refine(self, image1: torch.Tensor, inv_depth2: torch.Tensor) -> torch.Tensor:
         return self.refine_net(image1, inv_depth2.detach())
 
+    def priors_alone(self, pair: torch.Tensor, intrinsics: torch.Tensor) -> Prediction | None:
+        """The chain's classical priors with no net, where it has both bootstrap priors
+        (``flow1_prior`` and ``dm1_prior``; None otherwise): flow1's prior flow, the 5-point RANSAC
+        motion of that flow as dm1 reads it (:meth:`prior_motion`), and the inverse depth triangulated
+        from the two (clipped to [0, 50], as the iterative net's input is). What the trained nets add
+        to the profile is measured against it. (Its confidence is 1; it has no level-5 flow and no
+        normals: zeros.)"""
+        if not (self.flow1_prior and self.dm1_prior):
+            return None
+        with torch.no_grad():
+            flow = self.flow1.prior_flow(pair).float()
+            motion = self.prior_motion(flow, intrinsics, flow)
+            inv_depth = finite(geo.depth_from_flow_motion(flow, motion, intrinsics, clip=(0.0, 50.0)))
+        b, _, h, w = flow.shape
+        level5 = flow.new_zeros(b, 2, h // 8, w // 8)
+        return Prediction(flow, torch.ones_like(flow), level5, level5, inv_depth, flow.new_zeros(b, 3, h, w), motion)
+
     def forward(self, image1: torch.Tensor, image2: torch.Tensor, intrinsics: torch.Tensor,
                 iterations: int = 3, oracle: str | None = None, gt: dict | None = None,
-                refine: bool = True) -> ChainOutput:
-        """``refine=False`` leaves out the refinement net (``refined`` is None)."""
+                refine: bool = True, priors: bool = False) -> ChainOutput:
+        """``refine=False`` leaves out the refinement net (``refined`` is None); ``priors=True`` adds
+        the classical priors alone (:meth:`priors_alone`) where the chain has them."""
         if oracle not in ORACLES:
             raise ValueError(f"oracle: expected one of {ORACLES}, got {oracle!r}")
         if iterations < 0:
@@ -291,7 +310,8 @@ class DeMoN(nn.Module):
         passes = [self.bootstrap(pair, image2_2, intrinsics, gt2, oracle)]
         for _ in range(iterations):
             passes.append(self.iterate(pair, image2_2, intrinsics, passes[-1], gt2, oracle))
-        return ChainOutput(passes, self.refine(image1, passes[-1].inv_depth) if refine else None)
+        return ChainOutput(passes, self.refine(image1, passes[-1].inv_depth) if refine else None,
+                           self.priors_alone(pair, intrinsics) if priors else None)
 
 
 def _oracle_confidence(flow: torch.Tensor) -> torch.Tensor:

@@ -30,14 +30,15 @@ log = logging.getLogger(__name__)
 
 
 def run_chain(chain: DeMoN, batches: Iterable[dict[str, Any]], iterations: int, oracle: str | None = None,
-              precision: Any = 32, channels_last: bool = False, refine: bool = True
+              precision: Any = 32, channels_last: bool = False, refine: bool = True, priors: bool = False
               ) -> Iterator[tuple[dict[str, Any], dict[str, Any], ChainOutput]]:
     """The chain on each batch of ``batches`` (a loader, or any iterable of collated batches):
     yields the batch as given, the batch on the chain's device (the device of its parameters; its
     image-like tensors channels-last if ``channels_last``) and the chain's output, ``iterations`` passes after
     the bootstrap and, with ``refine``, the refined depth. The chain runs without gradients, its nets in
     ``precision`` (:mod:`demon_lab.core.execution`; the predictions it returns are float32);
-    ``oracle`` feeds it the batch's ground truth (:class:`DeMoN`). The caller's code between the
+    ``oracle`` feeds it the batch's ground truth (:class:`DeMoN`); ``priors`` adds its classical priors
+    alone (``ChainOutput.priors``, where it has them). The caller's code between the
     batches runs outside that autocast region, with gradients as the caller has them."""
     device = next(chain.parameters()).device
     for batch in batches:
@@ -46,7 +47,7 @@ def run_chain(chain: DeMoN, batches: Iterable[dict[str, Any]], iterations: int, 
         gt = {"inv_depth": inputs["inv_depth"], "motion": inputs["motion"]} if oracle else None
         with torch.no_grad(), execution.autocast(device, precision):
             out = chain(inputs["image1"], inputs["image2"], inputs["intrinsics"], iterations=iterations,
-                        oracle=oracle, gt=gt, refine=refine)
+                        oracle=oracle, gt=gt, refine=refine, priors=priors)
         yield batch, inputs, out
 
 
@@ -55,7 +56,8 @@ def evaluate_dataset(chain: DeMoN, dataset, iterations: int, oracle: str | None 
                      refined: bool = True, histogram: metrics.PixelHistogram | None = None,
                      precision: Any = 32, channels_last: bool = False
                      ) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
-    """Per-sample metric rows (one per sample and iteration, ``it`` = 0..N or 'refined') and the
+    """Per-sample metric rows (one per sample and iteration, ``it`` = 0..N or 'refined'; 'priors': the
+    chain's classical priors alone, where it has both bootstrap priors and no oracle feeds it) and the
     raw predictions of the first ``keep`` samples (for visualisations). ``refined=False`` (the
     refinement net was not trained) leaves out the refined rows. ``histogram`` collects the
     per-pixel errors of the final depth (refined, else the last pass). The chain runs as
@@ -67,9 +69,14 @@ def evaluate_dataset(chain: DeMoN, dataset, iterations: int, oracle: str | None 
     rows: list[dict[str, Any]] = []
     kept: list[dict[str, Any]] = []
     loader = DataLoader(subset, batch_size=batch_size, shuffle=False)
-    for batch, _, out in run_chain(chain, loader, iterations, oracle, precision, channels_last, refine=refined):
+    for batch, _, out in run_chain(chain, loader, iterations, oracle, precision, channels_last, refine=refined,
+                                   priors=oracle is None):
         for i in range(batch["image1"].shape[0]):
             truth = metrics.ground_truth({k: v[i] for k, v in batch.items() if isinstance(v, torch.Tensor)}, dataset)
+            if out.priors is not None:  # the classical priors alone: what the nets add is measured against it
+                p = out.priors
+                pred = {"inv_depth": p.inv_depth[i, 0].cpu(), "motion": p.motion[i].cpu(), "flow": p.flow[i].cpu()}
+                rows.append({"id": batch["id"][i], "it": "priors", **metrics.evaluate_sample(pred, truth, **protocol)})
             for k, p in enumerate(out.passes):
                 pred = {"inv_depth": p.inv_depth[i, 0].cpu(), "motion": p.motion[i].cpu(), "flow": p.flow[i].cpu()}
                 rows.append({"id": batch["id"][i], "it": k, **metrics.evaluate_sample(pred, truth, **protocol)})
@@ -89,13 +96,13 @@ def evaluate_dataset(chain: DeMoN, dataset, iterations: int, oracle: str | None 
 
 
 def summarize(rows: Sequence[dict[str, Any]], iterations: int) -> dict[str, float]:
-    """Means over samples: ``it<k>/<metric>``, ``refined/<metric>`` and the summary ``<metric>``
+    """Means over samples: ``it<k>/<metric>``, ``refined/<metric>``, ``priors/<metric>`` and the summary ``<metric>``
     (refined depth when there is one, else the last pass's)."""
     out: dict[str, float] = {}
-    groups = [*range(iterations + 1), *(["refined"] if any(r["it"] == "refined" for r in rows) else [])]
+    groups = [*range(iterations + 1), *[g for g in ("refined", "priors") if any(r["it"] == g for r in rows)]]
     for it in groups:
         means = metrics.summarize([{k: v for k, v in r.items() if k != "it"} for r in rows if r["it"] == it])
-        prefix = "refined" if it == "refined" else f"it{it}"
+        prefix = it if it in ("refined", "priors") else f"it{it}"
         out.update({f"{prefix}/{k}": v for k, v in means.items() if not k.startswith("n_failed")})
     for key in metrics.DEPTH_KEYS:
         source = f"refined/{key}" if "refined" in groups else f"it{iterations}/{key}"

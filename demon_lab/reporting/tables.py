@@ -33,12 +33,13 @@ def number(value: float, digits: int = 3) -> str:
 
 def results_table(summary: Mapping[str, Mapping[str, float]], passes: Sequence[int | str]) -> str:
     """The main command's table: one row per test set and pass (``k``: the k-th iterative pass,
-    ``refined``: the refinement net's depth, ``baseline``: a classical method's summary)."""
+    ``refined``: the refinement net's depth, ``priors``: the classical priors alone, no net,
+    ``baseline``: a classical method's summary)."""
     header = ["test set", "pass", *[column(key).text for key in RESULT_COLUMNS]]
     rows = []
     for name, values in summary.items():
         for it in passes:
-            prefix = {"refined": "refined/", "baseline": ""}.get(str(it), f"it{it}/")
+            prefix = {"refined": "refined/", "priors": "priors/", "baseline": ""}.get(str(it), f"it{it}/")
             rows.append([name, str(it), *[number(values.get(f"{prefix}{key}", math.nan)) for key in RESULT_COLUMNS]])
     return text_table(header, rows)
 
