@@ -24,6 +24,7 @@ import pandas as pd
 
 from demon_lab.pipeline.identity import digest, is_semantic
 from demon_lab.pipeline.schema import PRIOR_KEYS
+from demon_lab.reporting.archive import IMPORTED_FROM
 
 DEMON = "DeMoN's design"
 DEPARTURE_MODEL_KEYS = tuple(f"model.{k}" for k in (*PRIOR_KEYS, "correlation"))
@@ -120,8 +121,17 @@ def rows(spec: Mapping[str, Any], used: pd.DataFrame) -> list[dict[str, Any]]:
             out.append({"table": table["name"], "row": row["label"], "design": designs[0],
                         "config": ", ".join(dict.fromkeys(config_digest(p) for p in params)),
                         "seeds": ", ".join(str(s) for s in runs["seed"]),
-                        "runs": " ".join(runs["run_id"])})
+                        "runs": " ".join(first_ids(runs))})
     return out
+
+
+def first_ids(runs: pd.DataFrame) -> list[str]:
+    """The runs' ids as first tracked: an imported run's original id (``demon_lab.imported_from``,
+    :mod:`demon_lab.reporting.archive`), so that a report redrawn from an archive names the same runs."""
+    imported = runs.get(f"tags.{IMPORTED_FROM}")
+    if imported is None:
+        return list(runs["run_id"])
+    return [i if isinstance(i, str) and i else r for i, r in zip(imported, runs["run_id"], strict=True)]
 
 
 def commits(used: pd.DataFrame) -> str:
