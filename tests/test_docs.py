@@ -62,3 +62,37 @@ def test_the_checks_find_a_broken_link_and_a_missing_path(tmp_path):
                     "`docs/results.md`\n")
     assert _relative_links(page) == ["missing.md", "page.md#top"]
     assert missing_paths(page.read_text()) == ["reports/runs/none.zip", "tests/conftest.py::test_that_is_not_there"]
+
+
+def test_every_result_table_between_report_markers_is_its_reports_current_cells():
+    """The tables that README and docs/ hold between ``<!-- report: ... -->`` markers are what
+    ``python -m demon_lab.report --docs`` writes from the committed reports now."""
+    from demon_lab.reporting import doc_tables
+
+    assert doc_tables.stale_blocks(doc_tables.pages(ROOT), ROOT) == []
+
+
+def test_the_report_command_writes_a_marked_table_from_the_reports_csv(tmp_path):
+    """--docs fills a block from reports/<study>.csv (mean ± half-width, n; one seed: the mean), links
+    the report relative to the page, and a block edited by hand is named stale."""
+    from demon_lab.reporting import doc_tables
+    from demon_lab.reporting.report import main
+
+    (tmp_path / "reports").mkdir()
+    (tmp_path / "docs").mkdir()
+    header = "table,dataset,row,metric,mean,std,ci95,n,values,paper,design,config,run_ids\n"
+    (tmp_path / "reports" / "s.csv").write_text(header + "t,setA,row a,epe,0.1234,0.01,0.0248,3,,,,,\n"
+                                                  "t,setA,row b,epe,0.5,nan,nan,1,,,,,\n"
+                                                  "t,setA,row c,epe,nan,nan,nan,0,,,,,\n")
+    page = tmp_path / "docs" / "p.md"
+    page.write_text("before\n<!-- report: s t setA -->\nold\n<!-- /report -->\nafter\n")
+    assert doc_tables.stale_blocks([page], tmp_path) == ["docs/p.md: s t setA"]
+    assert main(["--docs", "--out", str(tmp_path / "reports")]) == 0
+    lines = page.read_text().splitlines()
+    assert lines[0] == "before" and lines[-1] == "after"
+    assert lines[2:6] == ["| row | n | EPE |", "|---|---|---|", "| row a | 3 | 0.123 ± 0.025 |",
+                          "| row b | 1 | 0.500 |"]
+    assert "[reports/s.md](../reports/s.md)" in page.read_text()
+    assert doc_tables.stale_blocks([page], tmp_path) == []
+    page.write_text(page.read_text().replace("0.500", "0.501"))
+    assert doc_tables.stale_blocks([page], tmp_path) == ["docs/p.md: s t setA"]

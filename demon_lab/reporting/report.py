@@ -595,6 +595,9 @@ def main(argv: Sequence[str] | None = None) -> int:
                         help="last write the named studies' runs to a run archive (a zip file)")
     parser.add_argument("--without-images", action="store_true",
                         help="with --export: leave out the jobs' depth panels (the qualitative figures' input)")
+    parser.add_argument("--docs", action="store_true",
+                        help="last write the result tables between <!-- report: STUDY TABLE SET --> markers in "
+                             "README.md and docs/ from the reports (run from the repository's root)")
     parser.add_argument("--tracking-uri", default=os.environ.get("MLFLOW_TRACKING_URI", "sqlite:///mlflow.db"))
     parser.add_argument("--artifact-dir", default="mlartifacts",
                         help="with --import, a local store: where imported artifacts go (tracking.artifact_dir)")
@@ -602,8 +605,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--studies", type=Path, default=STUDIES, help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     names = sorted(p.stem for p in args.studies.glob("*.yaml")) if args.all else list(args.names)
-    if not names and not args.imports and not args.experiments:
-        parser.error("name a study spec, pass --all or --experiment NAME")
+    if not names and not args.imports and not args.experiments and not args.docs:
+        parser.error("name a study spec, pass --all, --experiment NAME or --docs")
     if args.export and not names:
         parser.error("--export writes the runs of the studies named")
     from demon_lab.reporting.archive import export_runs, import_runs
@@ -632,6 +635,14 @@ def main(argv: Sequence[str] | None = None) -> int:
             print(f"error: {e}", file=sys.stderr)
             return 2
         print(f"[demon_lab.report] experiment {experiment}: " + ", ".join(str(p) for p in paths.values()), flush=True)
+    if args.docs:
+        from demon_lab.reporting import doc_tables
+
+        root = args.out.resolve().parent
+        written = {str(p.relative_to(root)): doc_tables.write_blocks(p, root) for p in doc_tables.pages(root)
+                   if p.is_file()}
+        print("[demon_lab.report] --docs: " + ", ".join(f"{p} ({n} tables)" for p, n in written.items() if n),
+              flush=True)
     if args.export:
         experiments = sorted({t["experiment"] for name in names for t in load_spec(name, args.studies)["tables"]})
         count = export_runs(args.tracking_uri, experiments, args.export, images=not args.without_images)

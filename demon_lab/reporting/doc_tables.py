@@ -1,0 +1,97 @@
+"""Result tables in the docs, written by the report command from the committed reports.
+
+A page holds a table between two markers::
+
+    <!-- report: learned_design bootstrap synthetic_sun3d -->
+    ...
+    <!-- /report -->
+
+naming a study, one of its tables and a test set. ``python -m demon_lab.report --docs`` writes each
+such block from ``reports/<study>.csv`` (the cells the report command wrote: mean ± 95 % half-width,
+n), so a number a reader sees in the docs is a report's cell, and :func:`stale_blocks` names the
+blocks that differ from what their report says now (a test runs it on README and docs/).
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+import re
+from collections.abc import Iterable
+from pathlib import Path
+
+from demon_lab.core.metrics import column
+
+BLOCK = re.compile(r"(<!-- report: (\S+) (\S+) (\S+) -->\n)(.*?)(<!-- /report -->)", re.S)
+
+
+def _number(value: str) -> str:
+    v = float(value)
+    return "-" if not math.isfinite(v) else f"{v:.3f}"
+
+
+def render(reports: Path, study: str, table: str, dataset: str) -> str:
+    """The Markdown table of ``study``'s ``table`` on ``dataset``, from ``reports/<study>.csv``: one line
+    per row with n and each metric's mean ± 95 % half-width (the mean alone for one seed), and a last
+    line naming its source."""
+    path = Path(reports) / f"{study}.csv"
+    with open(path, newline="") as f:
+        cells = [r for r in csv.DictReader(f) if r["table"] == table and r["dataset"] == dataset]
+    if not cells:
+        raise ValueError(f"{path}: no table {table!r} on {dataset!r}")
+    rows = list(dict.fromkeys(r["row"] for r in cells))
+    metrics = list(dict.fromkeys(r["metric"] for r in cells))
+    lines = ["| row | n | " + " | ".join(column(m).label for m in metrics) + " |",
+             "|---|---|" + "---|" * len(metrics)]
+    for row in rows:
+        mine = {r["metric"]: r for r in cells if r["row"] == row}
+        n = max(int(r["n"]) for r in mine.values())
+        if n == 0:
+            continue
+        text = [_number(mine[m]["mean"]) + (f" ± {_number(mine[m]['ci95'])}" if int(mine[m]["n"]) > 1 else "")
+                for m in metrics]
+        lines.append(f"| {row} | {n} | " + " | ".join(text) + " |")
+    lines.append("")
+    lines.append(f"*From [reports/{study}.md](reports/{study}.md), table `{table}`, {dataset}; "
+                 f"`python -m demon_lab.report {study}` writes the report, `python -m demon_lab.report --docs` "
+                 "this table.*")
+    return "\n".join(lines) + "\n"
+
+
+def _relink(text: str, page: Path, root: Path) -> str:
+    """The source line's link, relative to ``page``."""
+    prefix = "../" * len(page.resolve().parent.relative_to(root.resolve()).parts)
+    return text.replace("](reports/", f"]({prefix}reports/")
+
+
+def write_blocks(page: Path, root: Path) -> int:
+    """Rewrite every block of ``page`` from its report; returns how many blocks it holds."""
+    text = page.read_text()
+    found = 0
+
+    def fill(m: re.Match) -> str:
+        nonlocal found
+        found += 1
+        body = _relink(render(root / "reports", m.group(2), m.group(3), m.group(4)), page, root)
+        return m.group(1) + body + m.group(6)
+
+    new = BLOCK.sub(fill, text)
+    if new != text:
+        page.write_text(new)
+    return found
+
+
+def stale_blocks(pages: Iterable[Path], root: Path) -> list[str]:
+    """The blocks of ``pages`` whose table differs from what their report says now."""
+    stale = []
+    for page in pages:
+        for m in BLOCK.finditer(page.read_text()):
+            wanted = _relink(render(root / "reports", m.group(2), m.group(3), m.group(4)), page, root)
+            if m.group(5) != wanted:
+                stale.append(f"{page.relative_to(root)}: {m.group(2)} {m.group(3)} {m.group(4)}")
+    return stale
+
+
+def pages(root: Path) -> list[Path]:
+    """The pages whose blocks ``--docs`` writes: README.md and docs/*.md."""
+    return [root / "README.md", *sorted((root / "docs").glob("*.md"))]
