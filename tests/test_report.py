@@ -496,3 +496,24 @@ def test_a_committed_report_redraws_from_its_committed_archive_cell_by_cell(tmp_
         assert mine == theirs
     tables = lambda text: [line for line in text.splitlines() if line.startswith("|")]  # noqa: E731
     assert tables((out / f"{study}.md").read_text()) == tables((root / f"{study}.md").read_text())
+
+
+def test_a_difference_row_is_the_paired_per_seed_difference_with_its_interval(tmp_path):
+    """A table's ``differences`` row: per seed both rows have, row a minus row b, aggregated like a
+    row (row a: 1, 2, 3 at seeds 0-2; row b: 10, 14 at seeds 0-1 -> -9, -12: n = 2); a difference
+    naming a row the table lacks is refused when the spec loads."""
+    uri = _fake_store(tmp_path)
+    _spec(tmp_path)
+    spec = yaml.safe_load((tmp_path / "study.yaml").read_text())
+    spec["tables"][0]["differences"] = [{"label": "a minus b", "rows": ["row a", "row b"]}]
+    (tmp_path / "study.yaml").write_text(yaml.safe_dump(spec))
+    paths = report.report("study", uri, tmp_path / "reports", tmp_path)
+    with open(paths["csv"], newline="") as f:
+        cell = next(r for r in csv.DictReader(f) if r["row"] == "a minus b" and r["metric"] == "l1_inv")
+    assert float(cell["mean"]) == -10.5 and cell["n"] == "2" and cell["values"] == "-9 -12"
+    assert float(cell["ci95"]) == pytest.approx(12.706205 * 3 / math.sqrt(2) / math.sqrt(2), rel=1e-6)
+    assert "| *a minus b* | 2 | -10.500 ± 19.059 |" in paths["md"].read_text()
+    spec["tables"][0]["differences"] = [{"label": "x", "rows": ["row a", "row z"]}]
+    (tmp_path / "study.yaml").write_text(yaml.safe_dump(spec))
+    with pytest.raises(report.ReportError, match="difference 'x': expected rows: \\[A, B\\]"):
+        report.report("study", uri, tmp_path / "reports", tmp_path)

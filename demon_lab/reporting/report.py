@@ -94,6 +94,12 @@ def load_spec(name: str, directory: Path = STUDIES) -> dict[str, Any]:
             raise ReportError(f"{_shown(name, directory)}: missing key {key!r}")
     if not isinstance(spec.get("requires") or {}, dict):
         raise ReportError(f"{_shown(name, directory)}: requires: expected KEY: PLACEHOLDER pairs")
+    for table in spec["tables"]:
+        labels = {row["label"] for row in table["rows"]}
+        for d in table.get("differences", []):
+            if len(d.get("rows", [])) != 2 or not set(d["rows"]) <= labels:
+                raise ReportError(f"{_shown(name, directory)}: table {table['name']}: difference {d.get('label')!r}: "
+                                  f"expected rows: [A, B], two of the table's row labels")
     for figure in spec.get("figures", []):
         if figure not in FIGURES:
             raise ReportError(f"{_shown(name, directory)}: figures: expected some of {FIGURES}, got {figure!r}")
@@ -211,6 +217,24 @@ def aggregate(values: pd.DataFrame, by: Sequence[str] = CELL_KEYS) -> pd.DataFra
     return cells
 
 
+def differences(spec: Mapping[str, Any], values: pd.DataFrame) -> pd.DataFrame:
+    """The values of each table's ``differences`` (``{label, rows: [a, b]}``): per test set, column
+    and seed, row ``a``'s value minus row ``b``'s, where both rows have that seed (a paired
+    difference: the same seed's chain trained and untrained, say), aggregated like any row. What one
+    row adds to another is then a measured difference with its own interval."""
+    keys = ["dataset", "column", "seed"]
+    out = []
+    for table in spec["tables"]:
+        mine = values[values["table"] == table["name"]]
+        for d in table.get("differences", []):
+            a, b = (mine[mine["row"] == r].set_index(keys)["value"] for r in d["rows"])
+            diff = (a - b).dropna().rename("value").reset_index()
+            out.append(diff.assign(table=table["name"], row=d["label"]))
+    if not out:
+        return values.head(0)
+    return pd.concat(out, ignore_index=True)[[*CELL_KEYS, "seed", "value"]]
+
+
 def build(spec: Mapping[str, Any], runs: pd.DataFrame) -> dict[str, Any]:
     """``cells``: the aggregate per (table, dataset, row, column); ``used``: the runs counted (one
     row per table row and seed); ``missing``: the (row, seed)s without a FINISHED run."""
@@ -224,7 +248,9 @@ def build(spec: Mapping[str, Any], runs: pd.DataFrame) -> dict[str, Any]:
             if absent:
                 missing.append(f"{table['name']} / {row['label']}: no FINISHED run for seed(s) "
                                f"{', '.join(map(str, absent))}")
-    return {"cells": aggregate(long_values(spec, chosen)), "used": chosen, "missing": missing}
+    values = long_values(spec, chosen)
+    return {"cells": aggregate(pd.concat([values, differences(spec, values)], ignore_index=True)), "used": chosen,
+            "missing": missing}
 
 
 def _superseded(failed: pd.DataFrame, spec: Mapping[str, Any], runs: pd.DataFrame, used: pd.DataFrame) -> pd.Series:
@@ -318,6 +344,12 @@ def write_markdown(spec, result, info, failed: pd.DataFrame, paper_rows) -> str:
                 if paper:
                     values = " | ".join(_fmt(paper.get(c, math.nan)) for c in table["columns"])
                     w(f"| *{_paper_label(row)}* | | {values} |\n")
+            for d in table.get("differences", []):
+                entry = _row_cells(result, table, dataset, d)
+                n = max((c.n for c in entry.values()), default=0)
+                if n:
+                    cells = [_cell_text(entry[c], n, " ± ", " (n = {})") for c in table["columns"]]
+                    w(f"| *{d['label']}* | {n} | " + " | ".join(cells) + " |\n")
             w("\n")
     if spec.get("figures"):
         w("## Figures\n\n")
@@ -364,7 +396,7 @@ def write_csv(spec, result, paper_rows) -> str:
     origin = {(e["table"], e["row"]): e for e in result.get("provenance", [])}
     for table in spec["tables"]:
         for dataset, paper_dataset in spec["datasets"].items():
-            for row in table["rows"]:
+            for row in [*table["rows"], *table.get("differences", [])]:
                 paper = paper_cells(paper_rows, row.get("paper"), paper_dataset, table["columns"])
                 source = origin.get((table["name"], row["label"]), {})
                 for c, cl in _row_cells(result, table, dataset, row).items():
@@ -403,6 +435,12 @@ def write_tex(spec, result, info, paper_rows) -> str:
                     label = esc(row["paper"]["label"]) if row["paper"].get("label") else "paper"
                     w(" & ".join([f"\\quad\\textit{{{label}}}", *[f"\\textit{{{_fmt(paper.get(c, math.nan))}}}"
                                                               for c in cols]]) + " \\\\\n")
+            for d in table.get("differences", []):
+                entry = _row_cells(result, table, dataset, d)
+                n = max((entry[c].n for c in cols), default=0)
+                if n:
+                    cells = [_cell_text(entry[c], n, " $\\pm$ ", " ($n={}$)") for c in cols]
+                    w(" & ".join([f"\\textit{{{esc(d['label'])}}}", *cells]) + " \\\\\n")
             w("\\bottomrule\\end{tabular}\n\\end{table}\n\n")
     return out.getvalue()
 
