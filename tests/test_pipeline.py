@@ -366,10 +366,10 @@ EXPERIMENTS = sorted(p.stem for p in (resources.CONF / "experiment").glob("*.yam
 """The experiments that run on demon_lab's own data (released_model needs DeMoN's files and weights:
 tests/test_released.py)."""
 SWEPT = [e for e in EXPERIMENTS if e not in ("cpu_recipe", "cpu_design", "cpu_motion", "cpu_prior", "cpu_departures",
-                                             "learned_design")]
+                                             "learned_design", "baseline_thresholds")]
 """The experiments that declare a sweep (the probes of cpu_recipe, cpu_design, cpu_motion, cpu_prior,
-cpu_departures and learned_design are single jobs, the commands of their study specs in ablations/, which
-tests/test_report.py composes)."""
+cpu_departures, learned_design and baseline_thresholds are single jobs, the commands of their study specs
+in ablations/, which tests/test_report.py composes)."""
 
 
 @pytest.mark.parametrize("experiment", SWEPT)

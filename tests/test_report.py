@@ -190,7 +190,7 @@ def test_report_of_an_unknown_spec_is_one_line(tmp_path):
                             capture_output=True, text=True, timeout=120)
     assert result.returncode == 2
     assert result.stderr.strip().startswith(
-        "error: study spec 'no_such_study': no ablations/no_such_study.yaml; known: baselines, ")
+        "error: study spec 'no_such_study': no ablations/no_such_study.yaml; known: baseline_thresholds, baselines, ")
     assert len(result.stderr.splitlines()) == 1
 
 

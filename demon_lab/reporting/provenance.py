@@ -36,6 +36,9 @@ OFF = ("None", "nan", "0", "0.0", "")
 NAMED = {"the cpu profile": ["scale=cpu"], "the learned design": ["scale=cpu", "design=learned"]}
 """The designs the project ships at the cpu scale, as the overrides that compose them."""
 COMMIT_TAG = "tags.mlflow.source.git.commit"
+CHAIN_METHODS = ("demon", "base_mat_f")
+"""The methods whose numbers come from the chain's nets (Base-Mat-F reads its flow)."""
+CLASSICAL = "no net (a classical method)"
 
 
 class DesignMixError(ValueError):
@@ -111,7 +114,8 @@ def rows(spec: Mapping[str, Any], used: pd.DataFrame) -> list[dict[str, Any]]:
             if runs.empty:
                 continue
             params = [run_params(r) for _, r in runs.iterrows()]
-            designs = [design_name(departures(p)) for p in params]
+            designs = [design_name(departures(p)) if p.get("method", "demon") in CHAIN_METHODS else CLASSICAL
+                       for p in params]
             if len(set(designs)) > 1:
                 seeds = {d: [str(s) for s, dd in zip(runs["seed"], designs, strict=True) if dd == d]
                          for d in dict.fromkeys(designs)}
