@@ -47,7 +47,7 @@ def run_chain(chain: DeMoN, batches: Iterable[dict[str, Any]], iterations: int, 
         gt = {"inv_depth": inputs["inv_depth"], "motion": inputs["motion"]} if oracle else None
         with torch.no_grad(), execution.autocast(device, precision):
             out = chain(inputs["image1"], inputs["image2"], inputs["intrinsics"], iterations=iterations,
-                        oracle=oracle, gt=gt, refine=refine, priors=priors)
+                        oracle=oracle, gt=gt, refine=refine, **({"priors": True} if priors else {}))
         yield batch, inputs, out
 
 
