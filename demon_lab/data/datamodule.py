@@ -77,20 +77,19 @@ class DemonDataModule(L.LightningDataModule):
             raise ValueError("data.train: no training source configured")
         weights, datasets = zip(*self.train_sources)
         order = None if self.easy_first is None else [flow_order(d) for d in datasets]
-        lead, fresh = None, None
+        lengths = [len(d) for d in datasets]  # (a fresh source's own scenes: the sampler grows it past them)
+        fresh = [self.fresh_scenes if isinstance(d, SyntheticDataset) else 0.0 for d in datasets]
         if self.fresh_scenes:
-            fresh = [self.fresh_scenes if isinstance(d, SyntheticDataset) else 0.0 for d in datasets]
             extra = math.ceil(self.fresh_scenes * self.samples_per_epoch)
-            lengths = [len(d) for d in datasets]
             datasets = tuple(d.extended(extra) if f else d for d, f in zip(datasets, fresh, strict=True))
+        lead = None
         if self.layers_first is not None:
-            weights, datasets = (*weights, 0.0), (*datasets, LayersDataset(self.layers_size, self.seed))
+            layers = LayersDataset(self.layers_size, self.seed)
+            weights, datasets = (*weights, 0.0), (*datasets, layers)
+            lengths, fresh = [*lengths, len(layers)], [*fresh, 0.0]
             lead = (len(datasets) - 1, self.layers_first)
-            if fresh is not None:
-                fresh, lengths = [*fresh, 0.0], [*lengths, len(datasets[-1])]
-        self._sampler = MixtureSampler(lengths if fresh is not None else [len(d) for d in datasets], weights,
-                                       self.samples_per_epoch, self.seed, self.skip, self.rank, self.world,
-                                       self.batch_size, self.easy_first, order, lead, fresh)
+        self._sampler = MixtureSampler(lengths, weights, self.samples_per_epoch, self.seed, self.skip, self.rank,
+                                       self.world, self.batch_size, self.easy_first, order, lead, fresh)
         return self._loader(MixtureDataset(datasets), sampler=self._sampler, drop_last=True)
 
     def val_dataloader(self) -> list[DataLoader]:

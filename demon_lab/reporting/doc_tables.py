@@ -15,19 +15,14 @@ blocks that differ from what their report says now (a test runs it on README and
 from __future__ import annotations
 
 import csv
-import math
 import re
 from collections.abc import Iterable
 from pathlib import Path
 
 from demon_lab.core.metrics import column
+from demon_lab.reporting.tables import number
 
 BLOCK = re.compile(r"(<!-- report: (\S+) (\S+) (\S+) -->\n)(.*?)(<!-- /report -->)", re.S)
-
-
-def _number(value: str) -> str:
-    v = float(value)
-    return "-" if not math.isfinite(v) else f"{v:.3f}"
 
 
 def render(reports: Path, study: str, table: str, dataset: str) -> str:
@@ -48,8 +43,8 @@ def render(reports: Path, study: str, table: str, dataset: str) -> str:
         n = max(int(r["n"]) for r in mine.values())
         if n == 0:
             continue
-        text = [_number(mine[m]["mean"]) + (f" ± {_number(mine[m]['ci95'])}" if int(mine[m]["n"]) > 1 else "")
-                for m in metrics]
+        text = [number(float(mine[m]["mean"]))
+                + (f" ± {number(float(mine[m]['ci95']))}" if int(mine[m]["n"]) > 1 else "") for m in metrics]
         lines.append(f"| {row} | {n} | " + " | ".join(text) + " |")
     lines.append("")
     lines.append(f"*From [reports/{study}.md](reports/{study}.md), table `{table}`, {dataset}; "
