@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import json
 import math
 import os
 import subprocess
@@ -517,3 +518,74 @@ def test_a_difference_row_is_the_paired_per_seed_difference_with_its_interval(tm
     (tmp_path / "study.yaml").write_text(yaml.safe_dump(spec))
     with pytest.raises(report.ReportError, match="difference 'x': expected rows: \\[A, B\\]"):
         report.report("study", uri, tmp_path / "reports", tmp_path)
+
+
+def test_a_spec_of_one_design_extends_another_and_counts_only_runs_of_its_design(tmp_path):
+    """``design: learned`` adds ``design=learned`` to the spec's commands and counts only runs whose
+    departures are the learned design's (the profile's runs of the same experiment and rows are
+    passed over, not mixed in); ``extends`` inherits a spec and ``drop_rows`` leaves rows out with the
+    differences that read them; the profile's spec counts the profile's runs only."""
+    from demon_lab.pipeline.tracking import Tracker
+    from demon_lab.reporting import provenance
+
+    uri = f"sqlite:///{tmp_path}/mlflow.db"
+    tracker = Tracker(uri, "study", str(tmp_path / "artifacts"))
+    designs = {"profile": provenance.named_designs()["the cpu profile"],
+               "learned": provenance.named_designs()["the learned design"]}
+    for design, base in (("profile", 1.0), ("learned", 100.0)):
+        for row in ("a", "b"):
+            for seed in range(3):
+                run = tracker.start(f"{design}{row}{seed}", {f"{TAG}run_key": f"{design}{row}{seed}", f"{TAG}row": row,
+                                                             f"{TAG}seed": str(seed), **version_tags()})
+                tracker.log_params(run, {"seed": str(seed), **designs[design]})
+                tracker.log_metrics(run, {"test/setA/it0/l1_inv": base + seed + (row == "b"),
+                                          "test/setA/it0/tran_deg": 1.0})
+                tracker.finish(run, "FINISHED")
+    _spec(tmp_path, design="profile")
+    spec = yaml.safe_load((tmp_path / "study.yaml").read_text())
+    spec["tables"][0]["differences"] = [{"label": "a minus b", "rows": ["row a", "row b"]}]
+    (tmp_path / "study.yaml").write_text(yaml.safe_dump(spec))
+    (tmp_path / "study_learned.yaml").write_text(yaml.safe_dump(
+        {"extends": "study", "title": "The study, learned", "design": "learned", "drop_rows": ["row b"]}))
+    learned = report.load_spec("study_learned", tmp_path)
+    assert learned["runs"] == [["+experiment=study", "design=learned"]] and learned["datasets"] == {"setA": "SUN3D"}
+    assert [r["label"] for r in learned["tables"][0]["rows"]] == ["row a"] and learned["tables"][0]["differences"] == []
+    assert report.load_spec("study", tmp_path)["runs"] == [["+experiment=study"]]
+
+    def means(name: str) -> dict[str, float]:
+        paths = report.report(name, uri, tmp_path / "reports", tmp_path)
+        with open(paths["csv"], newline="") as f:
+            return {r["row"]: float(r["mean"]) for r in csv.DictReader(f) if r["metric"] == "l1_inv"}
+
+    assert means("study") == {"row a": 2.0, "row b": 3.0, "a minus b": -1.0}
+    assert means("study_learned") == {"row a": 101.0}
+    assert "- design: the learned design (" in (tmp_path / "reports" / "study_learned.md").read_text()
+    assert report.study_of("study", tmp_path, design="learned") == "study_learned"
+    assert report.study_of("study", tmp_path, design="profile") == report.study_of("study", tmp_path) == "study"
+    (tmp_path / "bad.yaml").write_text(yaml.safe_dump({"extends": "study", "design": "fast"}))
+    with pytest.raises(report.ReportError, match="design: expected one of \\['learned', 'profile'\\], got 'fast'"):
+        report.load_spec("bad", tmp_path)
+
+
+def test_a_report_names_the_run_archives_that_hold_its_experiments(tmp_path):
+    """The Provenance section links each archive beside the report that holds job runs of the spec's
+    experiments (an archive's comment names them; an archive of another study is not named)."""
+    import zipfile
+
+    from demon_lab.reporting.archive import archived_experiments
+
+    uri = _fake_store(tmp_path)
+    _spec(tmp_path)
+    runs = tmp_path / "reports" / "runs"
+    runs.mkdir(parents=True)
+    for name, experiments in (("mine.zip", "study other"), ("theirs.zip", "other")):
+        with zipfile.ZipFile(runs / name, "w") as archive:
+            archive.comment = experiments.encode()
+            archive.writestr("runs.json", "[]\n")
+    with zipfile.ZipFile(runs / "old.zip", "w") as archive:  # an archive without the comment: its runs say
+        archive.writestr("runs.json", json.dumps([
+            {"experiment": "study", "tags": {}}, {"experiment": "elsewhere", "tags": {f"{TAG}kind": "stage"}}]))
+    assert archived_experiments(runs / "old.zip") == {"study"}
+    md = report.report("study", uri, tmp_path / "reports", tmp_path)["md"].read_text()
+    assert "the run archive(s) [runs/mine.zip](runs/mine.zip), [runs/old.zip](runs/old.zip) beside" in md
+    assert "theirs.zip" not in md

@@ -118,6 +118,7 @@ def export_runs(uri: str, experiments: Sequence[str], path: Path, images: bool =
         records = [_record(client, run, names[run.info.experiment_id])
                    for run in sorted(runs.values(), key=lambda r: (r.info.start_time, r.info.run_id))]
         with zipfile.ZipFile(path, "w", compression=zipfile.ZIP_DEFLATED) as archive:
+            archive.comment = " ".join(sorted(experiments)).encode()  # what archived_experiments reads
             archive.writestr("runs.json", json.dumps(records, indent=1, sort_keys=True) + "\n")
             for run_id in runs:
                 local = Path(tmp) / "artifacts" / run_id
@@ -128,6 +129,20 @@ def export_runs(uri: str, experiments: Sequence[str], path: Path, images: bool =
                 for file in sorted(p for p in local.rglob("*") if p.is_file()):
                     archive.write(file, f"artifacts/{run_id}/{file.relative_to(local).as_posix()}")
     return len(records)
+
+
+def archived_experiments(path: Path) -> set[str]:
+    """The experiments whose job runs an archive holds: its comment (written by :func:`export_runs`),
+    or the experiment of each run in its ``runs.json`` but the stage runs of other experiments that
+    came with them; nothing if the file is not an archive."""
+    try:
+        with zipfile.ZipFile(path) as archive:
+            if archive.comment:
+                return set(archive.comment.decode().split())
+            records = json.loads(archive.read("runs.json"))
+            return {r["experiment"] for r in records if r["tags"].get(f"{TAG}kind") != "stage"}
+    except (zipfile.BadZipFile, KeyError, ValueError):
+        return set()
 
 
 def _parents_first(records: list[dict[str, Any]]) -> list[dict[str, Any]]:

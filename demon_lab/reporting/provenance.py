@@ -35,6 +35,9 @@ DEPARTURE_STAGE_OPTION = re.compile(
 OFF = ("None", "nan", "0", "0.0", "")
 NAMED = {"the cpu profile": ["scale=cpu"], "the learned design": ["scale=cpu", "design=learned"]}
 """The designs the project ships at the cpu scale, as the overrides that compose them."""
+SHIPPED = {"profile": "the cpu profile", "learned": "the learned design"}
+"""A study spec's ``design`` (its runs compose it; its rows count only runs of it), by short name: the
+profile is the ``cpu`` scale's own design, the learned design its ``design=learned``."""
 COMMIT_TAG = "tags.mlflow.source.git.commit"
 CHAIN_METHODS = ("demon", "base_mat_f")
 """The methods whose numbers come from the chain's nets (Base-Mat-F reads its flow)."""
@@ -92,6 +95,17 @@ def design_name(found: Mapping[str, str]) -> str:
                            f" without {', '.join(dropped)}" if dropped else ""])
 
 
+def run_design(params: Mapping[str, str]) -> str:
+    """The design a run measures (its logged params): :func:`design_name` of its departures, or
+    :data:`CLASSICAL` for a classical method whose numbers no net enters."""
+    return design_name(departures(params)) if params.get("method", "demon") in CHAIN_METHODS else CLASSICAL
+
+
+def shipped(params: Mapping[str, str]) -> str | None:
+    """The short name (:data:`SHIPPED`) of the shipped design a run or job measures, or None."""
+    return {long: short for short, long in SHIPPED.items()}.get(run_design(params))
+
+
 def run_params(run: pd.Series) -> dict[str, str]:
     """A run of ``mlflow.search_runs``'s frame: its params (dotted keys), as logged."""
     return {k.removeprefix("params."): v for k, v in run.items()
@@ -114,8 +128,7 @@ def rows(spec: Mapping[str, Any], used: pd.DataFrame) -> list[dict[str, Any]]:
             if runs.empty:
                 continue
             params = [run_params(r) for _, r in runs.iterrows()]
-            designs = [design_name(departures(p)) if p.get("method", "demon") in CHAIN_METHODS else CLASSICAL
-                       for p in params]
+            designs = [run_design(p) for p in params]
             if len(set(designs)) > 1:
                 seeds = {d: [str(s) for s, dd in zip(runs["seed"], designs, strict=True) if dd == d]
                          for d in dict.fromkeys(designs)}
@@ -148,10 +161,13 @@ def commits(used: pd.DataFrame) -> str:
     return text + (f"; {lacking} run(s) of an installed package, not a checkout" if lacking and len(found) else "")
 
 
-def markdown(entries: Sequence[Mapping[str, Any]], used: pd.DataFrame, versions: str, archive: str | None) -> str:
-    """The report's provenance section."""
-    where = (f"the archive [{archive}]({archive}) beside this report (`python -m demon_lab.report --import "
-             f"reports/{archive}` adds them to a store)" if archive else "the MLflow store the report read")
+def markdown(entries: Sequence[Mapping[str, Any]], used: pd.DataFrame, versions: str,
+             archives: Sequence[str] = ()) -> str:
+    """The report's provenance section (``archives``: the run archives beside the report that hold
+    runs of its experiments, relative to it)."""
+    where = ("the run archive(s) " + ", ".join(f"[{a}]({a})" for a in archives) + " beside this report "
+             f"(`python -m demon_lab.report --import reports/{archives[0]}` adds one's runs to a store)"
+             if archives else "the MLflow store the report read")
     lines = ["## Provenance\n\n",
              f"- designs: {'; '.join(dict.fromkeys(e['design'] for e in entries)) or '-'}\n",
              f"- code: commit {commits(used)}; {versions}\n",

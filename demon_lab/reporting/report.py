@@ -61,26 +61,38 @@ def _shown(name: str, directory: Path) -> str:
     return f"ablations/{name}.yaml" if Path(directory) == STUDIES else str(Path(directory) / f"{name}.yaml")
 
 
-def study_of(experiment: str, directory: Path = STUDIES) -> str | None:
-    """The study whose spec reports ``experiment``: its own spec (same name) first, else the first
-    spec (by name) with a table of that experiment; None if no spec reports it. A spec that does not
-    parse is passed over (``load_spec`` names its problem when it is reported)."""
+def study_of(experiment: str, directory: Path = STUDIES, design: str | None = None) -> str | None:
+    """The study whose spec reports ``experiment``: with ``design`` (a short name of
+    :data:`provenance.SHIPPED`), the first spec (by name, its own first) with a table of that
+    experiment and that ``design``; else, or where none has it, its own spec (same name), else the
+    first spec (by name) with a table of that experiment; None if no spec reports it. A spec that
+    does not parse is passed over (``load_spec`` names its problem when it is reported)."""
     directory = Path(directory)
-    if (directory / f"{experiment}.yaml").is_file():
+    names = sorted(p.stem for p in directory.glob("*.yaml"))
+    if design is not None:
+        for name in sorted(names, key=lambda n: n != experiment):
+            try:
+                spec = load_spec(name, directory)
+            except (ReportError, yaml.YAMLError, KeyError, TypeError):
+                continue
+            if spec.get("design") == design and any(t.get("experiment") == experiment for t in spec["tables"]):
+                return name
+    if experiment in names:
         return experiment
-    for path in sorted(directory.glob("*.yaml")):
+    for name in names:
         try:
-            spec = yaml.safe_load(path.read_text()) or {}
+            spec = yaml.safe_load((directory / f"{name}.yaml").read_text()) or {}
         except yaml.YAMLError:
             continue
         tables = spec.get("tables") if isinstance(spec, Mapping) else None
         if any(isinstance(t, Mapping) and t.get("experiment") == experiment for t in tables or []):
-            return path.stem
+            return name
     return None
 
 
-def load_spec(name: str, directory: Path = STUDIES) -> dict[str, Any]:
-    directory = Path(directory)
+def _read(name: str, directory: Path) -> dict[str, Any]:
+    """A spec file as written, with its ``extends`` applied: the named spec's keys, then this one's
+    (``drop_rows``: the inherited rows it leaves out, with the differences that read them)."""
     path = directory / f"{name}.yaml"
     if not path.is_file():
         owner = study_of(name, directory)
@@ -89,11 +101,36 @@ def load_spec(name: str, directory: Path = STUDIES) -> dict[str, Any]:
         known = ", ".join(sorted(p.stem for p in directory.glob("*.yaml")))
         raise ReportError(f"study spec {name!r}: no {_shown(name, directory)}; known: {known}")
     spec = yaml.safe_load(path.read_text()) or {}
+    base = spec.pop("extends", None)
+    if base is None:
+        return spec
+    if base == name:
+        raise ReportError(f"{_shown(name, directory)}: extends itself")
+    dropped = set(spec.pop("drop_rows", None) or [])
+    spec = {**_read(base, directory), **spec}
+    tables = []
+    for table in spec.get("tables", []):
+        rows = [r for r in table["rows"] if r["label"] not in dropped]
+        kept = [d for d in table.get("differences", []) if not set(d.get("rows", [])) & dropped]
+        tables.append({**table, "rows": rows, **({"differences": kept} if "differences" in table else {})})
+    return {**spec, "tables": tables}
+
+
+def load_spec(name: str, directory: Path = STUDIES) -> dict[str, Any]:
+    from demon_lab.reporting.provenance import SHIPPED
+
+    directory = Path(directory)
+    spec = _read(name, directory)
     for key in ("title", "tables", "datasets"):
         if key not in spec:
             raise ReportError(f"{_shown(name, directory)}: missing key {key!r}")
     if not isinstance(spec.get("requires") or {}, dict):
         raise ReportError(f"{_shown(name, directory)}: requires: expected KEY: PLACEHOLDER pairs")
+    design = spec.get("design")
+    if design is not None and design not in SHIPPED:
+        raise ReportError(f"{_shown(name, directory)}: design: expected one of {sorted(SHIPPED)}, got {design!r}")
+    if design not in (None, "profile"):  # the profile is the cpu scale's own design: no override
+        spec["runs"] = [[*overrides, f"design={design}"] for overrides in spec.get("runs", [])]
     for table in spec["tables"]:
         labels = {row["label"] for row in table["rows"]}
         for d in table.get("differences", []):
@@ -169,10 +206,23 @@ def current_versions(runs: pd.DataFrame, current: Mapping[str, str]) -> pd.Serie
     return mask
 
 
+def of_design(runs: pd.DataFrame, design: str | None) -> pd.Series:
+    """The runs that measure the shipped ``design`` (a spec's ``design``; every run where None), and
+    the classical methods' runs, which measure no design (:func:`provenance.run_design`)."""
+    from demon_lab.reporting import provenance
+
+    if design is None or runs.empty:
+        return pd.Series(True, index=runs.index)
+    found = runs.apply(lambda run: provenance.run_design(provenance.run_params(run)), axis=1)
+    return found.isin([provenance.SHIPPED[design], provenance.CLASSICAL])
+
+
 def choose(spec: Mapping[str, Any], runs: pd.DataFrame) -> pd.DataFrame:
     """The runs each table row counts: per (table, row, seed) the newest FINISHED run of the table's
-    experiment that matches the row; the runs' columns plus ``table`` and ``row`` (its label)."""
+    experiment that matches the row and measures the spec's ``design``; the runs' columns plus
+    ``table`` and ``row`` (its label)."""
     finished = runs[runs["status"] == "FINISHED"]
+    finished = finished[of_design(finished, spec.get("design"))]
     candidates = [finished[(finished["experiment"] == table["experiment"]) & _mask(finished, row.get("match"))]
                   .assign(table=table["name"], row=row["label"])
                   for table in spec["tables"] for row in table["rows"]]
@@ -362,7 +412,7 @@ def write_markdown(spec, result, info, failed: pd.DataFrame, paper_rows) -> str:
               f"store's artifact location: {', '.join(lacking)}.\n\n")
     from demon_lab.reporting import provenance
 
-    w(provenance.markdown(result.get("provenance", []), result["used"], result["versions"], result.get("archive")))
+    w(provenance.markdown(result.get("provenance", []), result["used"], result["versions"], result.get("archives", [])))
     w("\n## Runs not counted\n\n")
     if failed.empty and not result["missing"] and not result.get("rerun") and not result.get("stale"):
         w("None: every expected (row, seed) has a FINISHED run and no run failed.\n")
@@ -505,8 +555,11 @@ def report(name: str, uri: str, out_dir: Path, directory: Path = STUDIES,
         result["provenance"] = provenance.rows(spec, result["used"])
     except provenance.DesignMixError as e:
         raise ReportError(str(e)) from None
-    archives = sorted((out_dir / "runs").glob(f"*{name}*.zip")) if (out_dir / "runs").is_dir() else []
-    result["archive"] = f"runs/{archives[0].name}" if archives else None  # (relative to the report)
+    from demon_lab.reporting.archive import archived_experiments
+
+    archives = sorted((out_dir / "runs").glob("*.zip")) if (out_dir / "runs").is_dir() else []
+    result["archives"] = [f"runs/{a.name}" for a in archives  # (relative to the report)
+                          if archived_experiments(a) & set(experiments)]
     failed = runs[runs["status"] == "FAILED"]
     superseded = _superseded(failed, spec, runs, result["used"])
     result["rerun"] = int(superseded.sum())
