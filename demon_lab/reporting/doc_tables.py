@@ -9,7 +9,10 @@ A page holds a table between two markers::
 naming a study, one of its tables and a test set. ``python -m demon_lab.report --docs`` writes each
 such block from ``reports/<study>.csv`` (the cells the report command wrote: mean ± 95 % half-width,
 n), so a number a reader sees in the docs is a report's cell, and :func:`stale_blocks` names the
-blocks that differ from what their report says now (a test runs it on README and docs/).
+blocks that differ from what their report says now (a test runs it on README and docs/). The block
+``<!-- report: data_stats table1 presets -->`` is the synthetic presets' camera statistics, from the
+``reports/data_stats_<preset>.json`` files that ``python -m demon_lab.data_stats`` writes, beside the
+supplementary's Table 1 (``ablations/paper_table1.csv``).
 """
 
 from __future__ import annotations
@@ -21,14 +24,42 @@ from pathlib import Path
 
 from demon_lab.core.metrics import column
 from demon_lab.reporting.tables import number
+from demon_lab.resources import STUDIES
+
+PRESETS = {"synthetic_scenes11": "Scenes11", "synthetic_sun3d": "SUN3D", "synthetic_mvs": "MVS"}
+"""The synthetic presets and the training set of the paper's Table 1 whose camera statistics each imitates."""
 
 BLOCK = re.compile(r"(<!-- report: (\S+) (\S+) (\S+) -->\n)(.*?)(<!-- /report -->)", re.S)
+
+
+def render_camera_statistics(reports: Path) -> str:
+    """The presets' rotation and triangulation angles (mean ± standard deviation over the pairs the
+    data_stats command rendered) beside the supplementary's Table 1."""
+    import json
+
+    with open(STUDIES / "paper_table1.csv", newline="") as f:
+        paper = {r["dataset"]: r for r in csv.DictReader(f)}
+    lines = ["| preset | pairs | rotation (°), mean ± std | paper | triangulation (°), mean ± std | paper | paper dataset |",
+             "|---|---|---|---|---|---|---|"]
+    for preset, dataset in PRESETS.items():
+        stats = json.loads((Path(reports) / f"data_stats_{preset}.json").read_text())
+        ref = paper[dataset]
+        lines.append(f"| `{preset}` | {stats['n_pairs']} | {stats['rot_mean_deg']:.2f} ± {stats['rot_std_deg']:.2f} | "
+                     f"{ref['rot_mean_deg']} ± {ref['rot_std_deg']} | {stats['tri_mean_deg']:.2f} ± "
+                     f"{stats['tri_std_deg']:.2f} | {ref['tri_mean_deg']} ± {ref['tri_std_deg']} | {dataset} |")
+    lines.append("")
+    lines.append("*From reports/data_stats_PRESET.json, which `python -m demon_lab.data_stats data=PRESET n=500 "
+                 "out=reports/data_stats_PRESET.json` writes; the paper's columns: `ablations/paper_table1.csv` "
+                 "(supplementary Table 1); `python -m demon_lab.report --docs` writes this table.*")
+    return "\n".join(lines) + "\n"
 
 
 def render(reports: Path, study: str, table: str, dataset: str) -> str:
     """The Markdown table of ``study``'s ``table`` on ``dataset``, from ``reports/<study>.csv``: one line
     per row with n and each metric's mean ± 95 % half-width (the mean alone for one seed), and a last
-    line naming its source."""
+    line naming its source (``data_stats table1 presets``: :func:`render_camera_statistics`)."""
+    if (study, table, dataset) == ("data_stats", "table1", "presets"):
+        return render_camera_statistics(reports)
     path = Path(reports) / f"{study}.csv"
     with open(path, newline="") as f:
         cells = [r for r in csv.DictReader(f) if r["table"] == table and r["dataset"] == dataset]
