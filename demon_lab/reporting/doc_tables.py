@@ -12,7 +12,9 @@ n), so a number a reader sees in the docs is a report's cell, and :func:`stale_b
 blocks that differ from what their report says now (a test runs it on README and docs/). The block
 ``<!-- report: data_stats table1 presets -->`` is the synthetic presets' camera statistics, from the
 ``reports/data_stats_<preset>.json`` files that ``python -m demon_lab.data_stats`` writes, beside the
-supplementary's Table 1 (``ablations/paper_table1.csv``).
+supplementary's Table 1 (``ablations/paper_table1.csv``); ``<!-- report: bench SECTION K -->`` is the
+K-th table (from 1) of ``reports/bench.md``'s section SECTION, which ``python -m demon_lab.bench
+SECTION`` writes.
 """
 
 from __future__ import annotations
@@ -54,12 +56,25 @@ def render_camera_statistics(reports: Path) -> str:
     return "\n".join(lines) + "\n"
 
 
+def render_bench(reports: Path, section: str, index: str) -> str:
+    """The ``index``-th table (from 1) of ``reports/bench.md``'s section ``## section``, as written."""
+    text = (Path(reports) / "bench.md").read_text()
+    found = re.search(rf"^## {re.escape(section)}\n(.*?)(?=^## |\Z)", text, re.S | re.M)
+    tables = re.findall(r"(?:^\|.*\n)+", found.group(1), re.M) if found else []
+    if not 0 < int(index) <= len(tables):
+        raise ValueError(f"{reports}/bench.md: section {section!r} has no table {index}")
+    return (tables[int(index) - 1] + f"\n*From [reports/bench.md](reports/bench.md), section `{section}`; "
+            f"`python -m demon_lab.bench {section}` writes it, `python -m demon_lab.report --docs` this table.*\n")
+
+
 def render(reports: Path, study: str, table: str, dataset: str) -> str:
     """The Markdown table of ``study``'s ``table`` on ``dataset``, from ``reports/<study>.csv``: one line
     per row with n and each metric's mean ± 95 % half-width (the mean alone for one seed), and a last
     line naming its source (``data_stats table1 presets``: :func:`render_camera_statistics`)."""
     if (study, table, dataset) == ("data_stats", "table1", "presets"):
         return render_camera_statistics(reports)
+    if study == "bench":
+        return render_bench(reports, table, dataset)
     path = Path(reports) / f"{study}.csv"
     with open(path, newline="") as f:
         cells = [r for r in csv.DictReader(f) if r["table"] == table and r["dataset"] == dataset]
