@@ -41,8 +41,8 @@ def render_camera_statistics(reports: Path) -> str:
 
     with open(STUDIES / "paper_table1.csv", newline="") as f:
         paper = {r["dataset"]: r for r in csv.DictReader(f)}
-    lines = ["| preset | pairs | rotation (°), mean ± std | paper | triangulation (°), mean ± std | paper | paper dataset |",
-             "|---|---|---|---|---|---|---|"]
+    lines = ["| preset | pairs | rotation (°), mean ± std | paper | triangulation (°), mean ± std | paper "
+             "| paper dataset |", "|---|---|---|---|---|---|---|"]
     for preset, dataset in PRESETS.items():
         stats = json.loads((Path(reports) / f"data_stats_{preset}.json").read_text())
         ref = paper[dataset]
