@@ -14,7 +14,8 @@ blocks that differ from what their report says now (a test runs it on README and
 ``reports/data_stats_<preset>.json`` files that ``python -m demon_lab.data_stats`` writes, beside the
 supplementary's Table 1 (``ablations/paper_table1.csv``); ``<!-- report: bench SECTION K -->`` is the
 K-th table (from 1) of ``reports/bench.md``'s section SECTION, which ``python -m demon_lab.bench
-SECTION`` writes.
+SECTION`` writes; ``<!-- report: diagnose NAME SET -->`` is the per-pass diagnosis of test set SET in
+``reports/diagnose/NAME_seed*.json``, which ``python -m demon_lab.diagnose seed=S --out FILE`` writes.
 """
 
 from __future__ import annotations
@@ -67,6 +68,29 @@ def render_bench(reports: Path, section: str, index: str) -> str:
             f"`python -m demon_lab.bench {section}` writes it, `python -m demon_lab.report --docs` this table.*\n")
 
 
+def render_diagnose(reports: Path, name: str, dataset: str) -> str:
+    """Per seed: pass 0's flow EPE, then per iterative pass the EPE of the flow the previous pass's
+    depth and motion induce (the iterative flow net's prior) and of the pass's own flow."""
+    import json
+
+    files = sorted((Path(reports) / "diagnose").glob(f"{name}_seed*.json"))
+    if not files:
+        raise ValueError(f"{reports}/diagnose: no {name}_seed*.json")
+    rows = []
+    for path in files:
+        found = json.loads(path.read_text())
+        passes = [p for p in found["passes"][dataset] if isinstance(p["pass"], int)]  # (not the refined depth)
+        cells = [f"{passes[0]['epe']:.3f}"] + [f"{p['prior_epe']:.3f} / {p['epe']:.3f}" for p in passes[1:]]
+        rows.append((path.stem.rsplit("_seed", 1)[1], cells))
+    width = max(len(cells) for _, cells in rows)
+    lines = ["| seed | pass 0 EPE | " + " | ".join(f"pass {k}: prior EPE / EPE" for k in range(1, width)) + " |",
+             "|---|---:|" + "---|" * (width - 1)]
+    lines += [f"| {seed} | " + " | ".join(cells) + " |" for seed, cells in rows]
+    source = (f"*From reports/diagnose/{name}_seed*.json, {dataset}; `python -m demon_lab.diagnose seed=S --out FILE` "
+              "writes one, `python -m demon_lab.report --docs` this table.*")
+    return "\n".join(lines) + "\n\n" + source + "\n"
+
+
 def render(reports: Path, study: str, table: str, dataset: str) -> str:
     """The Markdown table of ``study``'s ``table`` on ``dataset``, from ``reports/<study>.csv``: one line
     per row with n and each metric's mean ± 95 % half-width (the mean alone for one seed), and a last
@@ -75,6 +99,8 @@ def render(reports: Path, study: str, table: str, dataset: str) -> str:
         return render_camera_statistics(reports)
     if study == "bench":
         return render_bench(reports, table, dataset)
+    if study == "diagnose":
+        return render_diagnose(reports, table, dataset)
     path = Path(reports) / f"{study}.csv"
     with open(path, newline="") as f:
         cells = [r for r in csv.DictReader(f) if r["table"] == table and r["dataset"] == dataset]
