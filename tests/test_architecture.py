@@ -1,129 +1,67 @@
-"""The package's layers (docs/architecture.md): every import points down or sideways within a layer,
-and no modules or packages import each other in a circle."""
+"""The package's layers (docs/architecture.md), stated as import-linter contracts in
+``pyproject.toml`` (``[tool.importlinter]``): every import points down, or sideways within a layer,
+and no modules or packages import each other in a circle. The tests run the contracts on demon_lab
+and show that they fail on a package that breaks them."""
 
 from __future__ import annotations
 
-import ast
+import sys
 from pathlib import Path
 
 import pytest
+import tomllib
 
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGE = ROOT / "demon_lab"
-
-LAYERS = {
-    "resources": 0, "core": 0,
-    "nets": 1, "data": 1, "baselines": 1,
-    "pipeline": 2,
-    "reporting": 3,
-    "app": 4, "tools": 4, "commands": 4,
-}
-"""The layer of each top-level part of demon_lab, from the model library (0, 1) through the pipeline
-(2) and reporting (3) to the commands (4): ``commands`` are the modules at the top of the package
-(``__main__`` and the entry module of each ``python -m demon_lab.NAME``)."""
+CONFIG = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["importlinter"]
 
 
-def _modules() -> dict[str, Path]:
-    out = {}
-    for path in sorted(PACKAGE.rglob("*.py")):
-        parts = path.relative_to(ROOT).with_suffix("").parts
-        name = ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
-        out[name] = path
-    return out
+def _lint(config: Path, cache: Path) -> int:
+    from importlinter.cli import lint_imports
+
+    return lint_imports(config_filename=str(config), no_logo=True, cache_dir=str(cache))
 
 
-MODULES = _modules()
-
-
-def _imports(name: str, path: Path) -> set[str]:
-    """The demon_lab modules ``name`` imports anywhere in its body (lazy imports included)."""
-    found = set()
-    for node in ast.walk(ast.parse(path.read_text())):
-        if isinstance(node, ast.ImportFrom) and node.module and node.module.split(".")[0] == "demon_lab":
-            for alias in node.names:
-                sub = f"{node.module}.{alias.name}"
-                found.add(sub if sub in MODULES else node.module)
-        elif isinstance(node, ast.Import):
-            found |= {a.name for a in node.names if a.name.split(".")[0] == "demon_lab"}
-    return {m for m in found if m in MODULES and m != name}
-
-
-def _part(module: str) -> str:
-    parts = module.split(".")
-    if len(parts) == 1:
-        return "commands"  # demon_lab itself (its __init__): a docstring and the version
-    if parts[1] in LAYERS:
-        return parts[1]
-    return "commands"
-
-
-GRAPH = {name: _imports(name, path) for name, path in MODULES.items()}
+def _layered() -> set[str]:
+    """Every module or package the layers contract names, relative to demon_lab."""
+    (layers,) = [c["layers"] for c in CONFIG["contracts"] if c["type"] == "layers"]
+    return {m.strip().removeprefix("demon_lab.") for layer in layers for m in layer.replace("|", ":").split(":")}
 
 
 def test_every_part_of_the_package_has_a_layer():
+    """A part of the package that no layer names would escape the contract; a module at the top is a
+    command, which runs one main() of a lower layer."""
     tops = {p.stem if p.is_file() else p.name for p in PACKAGE.iterdir()
-            if (p.suffix == ".py" or (p.is_dir() and any(p.glob("*.py"))))} - {"__init__"}
-    packages = {t for t in tops if (PACKAGE / t).is_dir()}
-    assert packages <= set(LAYERS), packages - set(LAYERS)
-    commands = {t for t in tops - packages if t != "resources"}
-    for name in commands:  # a module at the top is a command: it runs one main() of a lower layer
-        text = (PACKAGE / f"{name}.py").read_text()
-        assert 'if __name__ == "__main__":' in text or name == "__main__", name
+            if p.suffix == ".py" or (p.is_dir() and (p / "__init__.py").is_file())} - {"__init__"}
+    assert tops - _layered() == set()
+    for name in {t for t in tops if (PACKAGE / f"{t}.py").is_file()} - {"resources", "__main__"}:
+        assert 'if __name__ == "__main__":' in (PACKAGE / f"{name}.py").read_text(), name
 
 
-def test_no_import_points_up_a_layer():
-    upward = [f"{a} -> {b}" for a, deps in GRAPH.items() for b in deps
-              if LAYERS[_part(b)] > LAYERS[_part(a)]]
-    assert upward == []
+def test_the_package_keeps_its_import_contracts(tmp_path):
+    """No import points up a layer, and nothing imports in a circle (lint-imports exits 0)."""
+    assert _lint(ROOT / "pyproject.toml", tmp_path) == 0
 
 
-def _cycles(graph: dict[str, set[str]]) -> list[list[str]]:
-    """Strongly connected components with more than one node (Tarjan)."""
-    index, low, stack, on, out, counter = {}, {}, [], set(), [], [0]
-
-    def visit(v):
-        index[v] = low[v] = counter[0]
-        counter[0] += 1
-        stack.append(v)
-        on.add(v)
-        for w in graph.get(v, ()):
-            if w not in index:
-                visit(w)
-                low[v] = min(low[v], low[w])
-            elif w in on:
-                low[v] = min(low[v], index[w])
-        if low[v] == index[v]:
-            comp = []
-            while True:
-                w = stack.pop()
-                on.discard(w)
-                comp.append(w)
-                if w == v:
-                    break
-            if len(comp) > 1:
-                out.append(sorted(comp))
-
-    for v in graph:
-        if v not in index:
-            visit(v)
-    return out
-
-
-@pytest.mark.parametrize("level", ["module", "package"])
-def test_nothing_imports_in_a_circle(level):
-    if level == "module":
-        graph = GRAPH
-    else:  # the part of the package a module is in: demon_lab.pipeline for demon_lab.pipeline.stages.cache
-        def folder(m):
-            return ".".join(m.split(".")[:2])
-        graph = {}
-        for a, deps in GRAPH.items():
-            graph.setdefault(folder(a), set()).update(folder(b) for b in deps if folder(b) != folder(a))
-    assert _cycles(graph) == []
-
-
-def test_the_checks_see_a_circle_and_an_upward_import():
-    assert _cycles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]
-    assert _part("demon_lab.pipeline.stages.cache") == "pipeline" and _part("demon_lab.report") == "commands"
-    assert "demon_lab.core.geometry" in GRAPH["demon_lab.data.sample"]  # lazy and top-level imports both seen
-    assert "demon_lab.reporting.report" in GRAPH["demon_lab.app.callbacks"]
+@pytest.mark.parametrize("breach", [None, "upward", "circle"])
+def test_the_contracts_fail_on_an_upward_import_and_on_a_circle(tmp_path, monkeypatch, breach):
+    """The same two contract types, on a toy package: high over low, kept (high imports low); then
+    an import of high from low (upward), or two modules of one package importing each other (a circle)."""
+    package = tmp_path / "toy"
+    (package / "high").mkdir(parents=True)
+    (package / "low").mkdir()
+    for path in (package, package / "high", package / "low"):
+        (path / "__init__.py").write_text("")
+    (package / "high" / "a.py").write_text("from toy.low import b\n")
+    (package / "low" / "b.py").write_text({None: "", "upward": "def f():\n    from toy.high import a  # lazy: counts\n",
+                                           "circle": "from toy.low import c\n"}[breach])
+    (package / "low" / "c.py").write_text("from toy.low import b\n" if breach == "circle" else "")
+    config = tmp_path / "contracts.toml"
+    config.write_text('[tool.importlinter]\nroot_package = "toy"\n'
+                      '[[tool.importlinter.contracts]]\nname = "layers"\ntype = "layers"\n'
+                      'layers = ["toy.high", "toy.low"]\n'
+                      '[[tool.importlinter.contracts]]\nname = "circles"\ntype = "acyclic_siblings"\n'
+                      'ancestors = ["toy"]\n')
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.delitem(sys.modules, "toy", raising=False)
+    assert _lint(config, tmp_path / "cache") == (0 if breach is None else 1)
