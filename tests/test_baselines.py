@@ -142,6 +142,9 @@ def test_base_ff_and_base_sift_on_rendered_pairs(sun3d_like, sun3d_test_pairs):
         assert len(rows) == len(low)
         for row in rows:  # a result or a recorded failure (too few matches at 128x96), never a crash
             assert row["failed"] or (math.isfinite(row["rot_deg"]) and math.isfinite(row["l1_inv"]))
+        # DIS flow is dense: Base-FF fails on no pair; SIFT finds too few matches on some, not on all
+        failed = sum(bool(r["failed"]) for r in rows)
+        assert failed == 0 if method == "base_ff" else failed < len(rows), (method, failed)
     # On the first pair of moderate parallax (triangulation angle 1.5-3°: DIS follows its flow at
     # 128x96; the close scenes of larger angles have parallax that DIS does not) the motion comes
     # out right.

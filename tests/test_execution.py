@@ -194,8 +194,11 @@ def test_execution_options_are_refused_in_one_line(overrides, message, tmp_path)
 
 
 def test_a_baseline_job_ignores_the_chains_precision(tmp_path):
-    validate(compose_config(smoke_overrides(tmp_path, "method=base_ff", "precision=16-mixed",
-                                            "trainer.accelerator=cpu")))
+    """The precision that a chain's job refuses on a CPU is no concern of a classical method's job."""
+    overrides = ("precision=16-mixed", "trainer.accelerator=cpu")
+    with pytest.raises(ConfigError, match="precision=16-mixed needs a CUDA device"):
+        validate(compose_config(smoke_overrides(tmp_path, "method=demon", *overrides)))
+    assert validate(compose_config(smoke_overrides(tmp_path, "method=base_ff", *overrides))) is None
 
 
 def _job(tmp, *extra):

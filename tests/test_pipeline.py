@@ -411,8 +411,9 @@ def test_the_stage_kinds_and_rate_schedules_a_config_may_name_are_the_implemente
         options = spec(name=kind, steps=10, lr=1e-3).module_options()
         assert set(options) <= set(inspect.signature(STAGE_KINDS[kind]).parameters) | {"steps", "lr", "warmup_steps",
                                                                                        "oracle"}, kind
-    for schedule in LR_SCHEDULES:
-        assert learning_rate(500, 1000, 1e-3, schedule) > 0
+    for schedule in LR_SCHEDULES:  # each is implemented: the base rate at step 0, decayed by mid-stage
+        assert learning_rate(0, 1000, 1e-3, schedule) == 1e-3
+        assert 0 < learning_rate(500, 1000, 1e-3, schedule) < learning_rate(399, 1000, 1e-3, schedule) <= 1e-3
     with pytest.raises(ValueError, match=r"schedule\.lr_schedule: expected one of"):
         learning_rate(500, 1000, 1e-3, "cosine")
 
