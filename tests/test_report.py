@@ -561,6 +561,8 @@ def test_a_spec_of_one_design_extends_another_and_counts_only_runs_of_its_design
     assert means("study_learned") == {"row a": 101.0}
     assert "- design: the learned design (" in (tmp_path / "reports" / "study_learned.md").read_text()
     assert report.study_of("study", tmp_path, design="learned") == "study_learned"
+    # a scale's own design is the profile's spec's: DeMoN's design at the smoke and paper scales
+    assert provenance.shipped({}) == "profile" and provenance.shipped(designs["learned"]) == "learned"
     assert report.study_of("study", tmp_path, design="profile") == report.study_of("study", tmp_path) == "study"
     (tmp_path / "bad.yaml").write_text(yaml.safe_dump({"extends": "study", "design": "fast"}))
     with pytest.raises(report.ReportError, match="design: expected one of \\['learned', 'profile'\\], got 'fast'"):

@@ -157,11 +157,12 @@ class MultirunTracking(Callback):
         """The study's report (``python -m demon_lab.report NAME``, from every FINISHED run in the
         store) as artifacts of the parent run; a sweep of an experiment without a study spec has
         none. A report that cannot be built is a warning: the sweep's own result stands."""
-        from demon_lab.reporting import report
+        from demon_lab.reporting import provenance, report
 
         study = None
-        try:
-            study = report.study_of(str(config.get("experiment")))
+        try:  # the study of the sweep's design where one reports it (design=learned: NAME_learned)
+            design = provenance.config_design(config)
+            study = report.study_of(str(config.get("experiment")), design=design)
             if study is None:
                 return
             paths = report.publish(study, self.tracker.uri, self.parent)

@@ -236,10 +236,9 @@ def _print_study_rows(cfg: DictConfig) -> None:
     (:func:`demon_lab.reporting.report.study_rows`). A table that cannot be built is a warning."""
     if _parent_run() is not None:
         return
-    from demon_lab.pipeline.tracking import flatten
     from demon_lab.reporting import provenance, report
 
-    design = provenance.shipped(flatten(OmegaConf.to_container(cfg, resolve=True)))
+    design = provenance.config_design(cfg)
     study = report.study_of(str(cfg.experiment), design=design)
     if study is None:
         return

@@ -35,9 +35,10 @@ DEPARTURE_STAGE_OPTION = re.compile(
 OFF = ("None", "nan", "0", "0.0", "")
 NAMED = {"the cpu profile": ["scale=cpu"], "the learned design": ["scale=cpu", "design=learned"]}
 """The designs the project ships at the cpu scale, as the overrides that compose them."""
-SHIPPED = {"profile": "the cpu profile", "learned": "the learned design"}
-"""A study spec's ``design`` (its runs compose it; its rows count only runs of it), by short name: the
-profile is the ``cpu`` scale's own design, the learned design its ``design=learned``."""
+SHIPPED = {"profile": ("the cpu profile", DEMON), "learned": ("the learned design",)}
+"""A study spec's ``design``, by short name, and the designs whose runs its rows count (its commands
+compose it): ``profile`` is a scale's own design (``design`` unset): the cpu profile at the ``cpu``
+scale, DeMoN's design at the ``smoke`` and ``paper`` scales; ``learned`` is ``design=learned``."""
 COMMIT_TAG = "tags.mlflow.source.git.commit"
 CHAIN_METHODS = ("demon", "base_mat_f")
 """The methods whose numbers come from the chain's nets (Base-Mat-F reads its flow)."""
@@ -60,8 +61,12 @@ def departures(params: Mapping[str, Any]) -> dict[str, str]:
 
 @functools.cache
 def named_designs() -> dict[str, dict[str, str]]:
-    """The departures of each design in :data:`NAMED`, composed from the package's configs."""
+    """The departures of each design in :data:`NAMED`, composed from the package's configs; also
+    inside a running Hydra app (a job that prints its study's rows), whose global state is set
+    aside while they compose and put back after."""
     from hydra import compose, initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+    from hydra.initialize import get_gh_backup, restore_gh_from_backup
     from omegaconf import OmegaConf
 
     from demon_lab.pipeline.config import register_resolvers
@@ -70,10 +75,15 @@ def named_designs() -> dict[str, dict[str, str]]:
 
     register_resolvers()
     designs = {}
-    with initialize_config_dir(str(CONF), version_base="1.3"):
-        for name, overrides in NAMED.items():
-            cfg = compose("config", overrides)
-            designs[name] = departures(flatten(OmegaConf.to_container(cfg, resolve=True)))
+    running = get_gh_backup()
+    GlobalHydra.instance().clear()
+    try:
+        with initialize_config_dir(str(CONF), version_base="1.3"):
+            for name, overrides in NAMED.items():
+                cfg = compose("config", overrides)
+                designs[name] = departures(flatten(OmegaConf.to_container(cfg, resolve=True)))
+    finally:
+        restore_gh_from_backup(running)
     return designs
 
 
@@ -103,7 +113,19 @@ def run_design(params: Mapping[str, str]) -> str:
 
 def shipped(params: Mapping[str, str]) -> str | None:
     """The short name (:data:`SHIPPED`) of the shipped design a run or job measures, or None."""
-    return {long: short for short, long in SHIPPED.items()}.get(run_design(params))
+    found = run_design(params)
+    return next((short for short, names in SHIPPED.items() if found in names), None)
+
+
+def config_design(cfg: Any) -> str | None:
+    """The short name of the shipped design a composed config measures (its ``hydra`` node aside),
+    or None: what picks a study's spec for a job or a sweep (``NAME_learned`` for the learned design)."""
+    from omegaconf import OmegaConf
+
+    from demon_lab.pipeline.tracking import flatten
+
+    mine = OmegaConf.masked_copy(cfg, [k for k in cfg if k != "hydra"])
+    return shipped(flatten(OmegaConf.to_container(mine, resolve=True)))
 
 
 def run_params(run: pd.Series) -> dict[str, str]:

@@ -207,14 +207,14 @@ def current_versions(runs: pd.DataFrame, current: Mapping[str, str]) -> pd.Serie
 
 
 def of_design(runs: pd.DataFrame, design: str | None) -> pd.Series:
-    """The runs that measure the shipped ``design`` (a spec's ``design``; every run where None), and
-    the classical methods' runs, which measure no design (:func:`provenance.run_design`)."""
+    """The runs that measure the shipped ``design`` (a spec's ``design``, :data:`provenance.SHIPPED`;
+    every run where None), and the classical methods' runs, which measure no design."""
     from demon_lab.reporting import provenance
 
     if design is None or runs.empty:
         return pd.Series(True, index=runs.index)
     found = runs.apply(lambda run: provenance.run_design(provenance.run_params(run)), axis=1)
-    return found.isin([provenance.SHIPPED[design], provenance.CLASSICAL])
+    return found.isin([*provenance.SHIPPED[design], provenance.CLASSICAL])
 
 
 def choose(spec: Mapping[str, Any], runs: pd.DataFrame) -> pd.DataFrame:
