@@ -10,7 +10,7 @@ theirs; any other set is named by the nearest one and what differs from it.
 
 A report row whose runs measure different designs is refused (:class:`DesignMixError`): its mean
 would describe no design. Runs of other code or scene-generator versions never share a row either:
-the report counts only this checkout's (:func:`demon_lab.reporting.report.current_versions`).
+the report counts only this checkout's (:func:`demon_lab.reporting.selection.current_versions`).
 """
 
 from __future__ import annotations

@@ -1,5 +1,5 @@
 """Tables: the terminal tables of the main command's results, the diagnosis and the data
-statistics, and the cells of a study's result tables (:func:`demon_lab.reporting.report.build`) with the
+statistics, and the cells of a study's result tables (:func:`demon_lab.reporting.selection.build`) with the
 paper's values beside them, which the report's tables and figures read.
 
 Column names come from :data:`demon_lab.core.metrics.COLUMNS` (their ``text`` form).
