@@ -21,12 +21,11 @@ from demon_lab.data.datasets import (
     SPLIT_SEEDS,
     DemonH5Dataset,
     MiddleburyDataset,
-    MixtureSampler,
     PairFolderDataset,
     SyntheticDataset,
     TumDataset,
-    flow_order,
 )
+from demon_lab.data.mixture import MixtureSampler, flow_order
 from demon_lab.data.readers import (
     middlebury_motorcycle,
     read_demon_h5_pairs,

@@ -11,8 +11,10 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-PAGES = [ROOT / "README.md", ROOT / "CHANGELOG.md", ROOT / "NOTICE.md", *sorted((ROOT / "docs").glob("*.md")),
+PAGES = [ROOT / "README.md", ROOT / "CHANGELOG.md", ROOT / "NOTICE.md", *sorted((ROOT / "docs").rglob("*.md")),
          *sorted((ROOT / "reports").glob("*.md"))]
+REPORTS = [*sorted((ROOT / "reports").glob("*.md")), *sorted((ROOT / "docs" / "notes" / "unarchived").glob("*.md"))]
+"""The committed reports: reports/, and the probe reports whose runs were not archived (docs/notes/unarchived/)."""
 LINK = re.compile(r"\]\(([^)\s]+)\)")
 QUOTED = re.compile(r"`((?:reports|docs|demon_lab|conf|ablations|tests|scripts|hydra_plugins)/[^`\s*{}<>]+)`")
 WRITTEN_ELSEWHERE = {
@@ -96,3 +98,84 @@ def test_the_report_command_writes_a_marked_table_from_the_reports_csv(tmp_path)
     assert doc_tables.stale_blocks([page], tmp_path) == []
     page.write_text(page.read_text().replace("0.500", "0.501"))
     assert doc_tables.stale_blocks([page], tmp_path) == ["docs/p.md: s t setA"]
+
+
+INTERVAL = re.compile(r"-?\d[\d,]*\.?\d* ± \d[\d,]*\.?\d*")
+"""A number quoted with its interval (or spread): ``0.089 ± 0.005``."""
+THREE_DECIMALS = re.compile(r"(?<![\w.])-?\d+\.\d{3}(?!\d)")
+
+
+def _outside_blocks(text: str) -> str:
+    """A page's prose: without its report blocks (checked against their reports above) and code."""
+    from demon_lab.reporting.doc_tables import BLOCK
+
+    return re.sub(r"```.*?```", "", BLOCK.sub("", text), flags=re.S)
+
+
+def untraced(text: str, reports: str) -> list[str]:
+    """The numbers ``text`` quotes with an interval that no committed report prints as such."""
+    return [m for m in INTERVAL.findall(_outside_blocks(text)) if m not in reports]
+
+
+def _reports_text() -> str:
+    return "".join(p.read_text() for p in REPORTS)
+
+
+@pytest.mark.parametrize("page", [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))],
+                         ids=lambda p: str(p.relative_to(ROOT)))
+def test_every_number_quoted_with_its_interval_is_a_reports_cell(page):
+    """Prose that quotes a result with its interval quotes a committed report's cell as the report
+    prints it (a cell re-typed with other digits, or from a run no report holds, fails)."""
+    assert untraced(page.read_text(), _reports_text()) == []
+
+
+def test_every_result_on_the_front_page_is_a_reports_number():
+    """README quotes no result (a number with three decimals) that no committed report prints."""
+    reports = set(THREE_DECIMALS.findall(_reports_text()))
+    readme = _outside_blocks((ROOT / "README.md").read_text())
+    assert [n for n in THREE_DECIMALS.findall(readme) if n not in reports] == []
+
+
+def test_the_number_checks_find_a_retyped_cell():
+    reports = "| row | 3 | 0.089 ± 0.005 | 69.888 ± 10.897 |"
+    page = "EPE 0.089 ± 0.005, translation 69.89 ± 10.9°\n<!-- report: s t d -->\n1.0 ± 2.0\n<!-- /report -->\n"
+    assert untraced(page, reports) == ["69.89 ± 10.9"]
+
+
+def test_the_bench_and_data_statistics_blocks_are_their_files_tables(tmp_path):
+    """``bench SECTION K``: the K-th table of that section of reports/bench.md, as written;
+    ``data_stats table1 presets``: each preset's JSON statistics beside the paper's Table 1."""
+    import json
+
+    from demon_lab.reporting import doc_tables
+
+    reports = tmp_path / "reports"
+    reports.mkdir()
+    (reports / "bench.md").write_text("# b\n\n## data\n\ntext\n\n| a |\n|---|\n| 1 |\n\nmore\n\n| b |\n|---|\n| 2 |\n\n"
+                                      "## train\n\n| c |\n|---|\n| 3 |\n")
+    assert doc_tables.render(reports, "bench", "data", "2").startswith("| b |\n|---|\n| 2 |\n\n*From")
+    assert doc_tables.render(reports, "bench", "train", "1").startswith("| c |\n|---|\n| 3 |\n")
+    with pytest.raises(ValueError, match="section 'data' has no table 3"):
+        doc_tables.render(reports, "bench", "data", "3")
+    for i, preset in enumerate(doc_tables.PRESETS):
+        (reports / f"data_stats_{preset}.json").write_text(json.dumps(
+            {"n_pairs": 500, "rot_mean_deg": 1.0 + i, "rot_std_deg": 0.5, "tri_mean_deg": 2.0, "tri_std_deg": 0.25}))
+    table = doc_tables.render(reports, "data_stats", "table1", "presets")
+    assert "| `synthetic_sun3d` | 500 | 2.00 ± 0.50 | 10.6 ± 7.5 | 2.00 ± 0.25 | 5.2 ± 4.6 | SUN3D |" in table
+
+
+def test_the_diagnosis_block_reads_each_seeds_passes(tmp_path):
+    """``diagnose NAME SET``: per seed file, pass 0's EPE and each iterative pass's prior EPE / EPE,
+    the refined depth's row left out."""
+    import json
+
+    from demon_lab.reporting import doc_tables
+
+    (tmp_path / "diagnose").mkdir()
+    for seed in (0, 1):
+        passes = [{"pass": 0, "epe": 0.1 + seed, "prior_epe": float("nan")},
+                  {"pass": 1, "epe": 0.2, "prior_epe": 0.25}, {"pass": "refined", "epe": 9.0, "prior_epe": 9.0}]
+        (tmp_path / "diagnose" / f"x_seed{seed}.json").write_text(json.dumps({"passes": {"setA": passes}}))
+    table = doc_tables.render(tmp_path, "diagnose", "x", "setA").splitlines()
+    assert table[:4] == ["| seed | pass 0 EPE | pass 1: prior EPE / EPE |", "|---|---:|---|",
+                         "| 0 | 0.100 | 0.250 / 0.200 |", "| 1 | 1.100 | 0.250 / 0.200 |"]

@@ -599,7 +599,7 @@ def test_train_stage_hands_the_probe_options_to_their_stages(tmp_path, monkeypat
 def test_train_stage_draws_its_samples_with_the_stage_curriculum(tmp_path, monkeypatch):
     """easy_first of a stage reaches its sampler, with each source ordered by flow_order; a stage
     without it draws with the plain sampler."""
-    from demon_lab.data.datasets import flow_order
+    from demon_lab.data.mixture import flow_order
     from demon_lab.pipeline.stages import training
     from demon_lab.pipeline.stages.schedule import build_chain, stage_dirs
 

@@ -17,14 +17,8 @@ import numpy as np
 import torch
 from torch.utils.data import DataLoader
 
-from demon_lab.data.datasets import (
-    LayersDataset,
-    MixtureDataset,
-    MixtureSampler,
-    PairDataset,
-    SyntheticDataset,
-    flow_order,
-)
+from demon_lab.data.datasets import LayersDataset, PairDataset, SyntheticDataset
+from demon_lab.data.mixture import MixtureDataset, MixtureSampler, flow_order
 
 
 def _seed_worker(worker_id: int) -> None:
