@@ -13,8 +13,9 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 PAGES = [ROOT / "README.md", ROOT / "CHANGELOG.md", ROOT / "NOTICE.md", *sorted((ROOT / "docs").rglob("*.md")),
          *sorted((ROOT / "reports").glob("*.md"))]
-REPORTS = [*sorted((ROOT / "reports").glob("*.md")), *sorted((ROOT / "docs" / "notes" / "unarchived").glob("*.md"))]
-"""The committed reports: reports/, and the probe reports whose runs were not archived (docs/notes/unarchived/)."""
+REPORTS = sorted((ROOT / "reports").glob("*.md"))
+"""The committed reports a reader can trace a number to: those an archive in reports/runs/ redraws (the
+records in docs/notes/unarchived/ have no archive, so the user pages do not quote their cells)."""
 LINK = re.compile(r"\]\(([^)\s]+)\)")
 QUOTED = re.compile(r"`((?:reports|docs|demon_lab|conf|ablations|tests|scripts|hydra_plugins)/[^`\s*{}<>]+)`")
 WRITTEN_ELSEWHERE = {
@@ -68,10 +69,13 @@ def test_the_checks_find_a_broken_link_and_a_missing_path(tmp_path):
 
 def test_every_result_table_between_report_markers_is_its_reports_current_cells():
     """The tables that README and docs/ hold between ``<!-- report: ... -->`` markers are what
-    ``python -m demon_lab.report --docs`` writes from the committed reports now."""
+    ``python -m demon_lab.report --docs`` writes from the committed reports now, and
+    reports/data_stats.md is what ``--data-stats`` writes from the committed statistics."""
     from demon_lab.reporting import doc_tables
 
     assert doc_tables.stale_blocks(doc_tables.pages(ROOT), ROOT) == []
+    reports = ROOT / "reports"
+    assert (reports / "data_stats.md").read_text() == doc_tables.camera_statistics(reports)
 
 
 def test_the_report_command_writes_a_marked_table_from_the_reports_csv(tmp_path):
@@ -98,6 +102,11 @@ def test_the_report_command_writes_a_marked_table_from_the_reports_csv(tmp_path)
     assert doc_tables.stale_blocks([page], tmp_path) == []
     page.write_text(page.read_text().replace("0.500", "0.501"))
     assert doc_tables.stale_blocks([page], tmp_path) == ["docs/p.md: s t setA"]
+    # a cell as the report's Markdown prints it: large values without decimals, fewer seeds marked
+    (tmp_path / "reports" / "w.csv").write_text(header + "t,setA,row d,epe,7332.19,1,15785.614,3,,,,,\n"
+                                                  "t,setA,row d,sc_inv,0.097,1,0.45,2,,,,,\n")
+    assert doc_tables.render(tmp_path / "reports", "w", "t", "setA").splitlines()[2] == \
+        "| row d | 3 | 7332 ± 15786 | 0.097 ± 0.450 (n = 2) |"
 
 
 INTERVAL = re.compile(r"-?\d[\d,]*\.?\d* ± \d[\d,]*\.?\d*")
@@ -144,7 +153,8 @@ def test_the_number_checks_find_a_retyped_cell():
 
 def test_the_bench_and_data_statistics_blocks_are_their_files_tables(tmp_path):
     """``bench SECTION K``: the K-th table of that section of reports/bench.md, as written;
-    ``data_stats table1 presets``: each preset's JSON statistics beside the paper's Table 1."""
+    ``data_stats table1 1``: reports/data_stats.md's table, each preset's JSON statistics beside the
+    paper's Table 1 (``--data-stats`` writes it)."""
     import json
 
     from demon_lab.reporting import doc_tables
@@ -160,7 +170,10 @@ def test_the_bench_and_data_statistics_blocks_are_their_files_tables(tmp_path):
     for i, preset in enumerate(doc_tables.PRESETS):
         (reports / f"data_stats_{preset}.json").write_text(json.dumps(
             {"n_pairs": 500, "rot_mean_deg": 1.0 + i, "rot_std_deg": 0.5, "tri_mean_deg": 2.0, "tri_std_deg": 0.25}))
-    table = doc_tables.render(reports, "data_stats", "table1", "presets")
+    from demon_lab.reporting.report import main
+
+    assert main(["--data-stats", "--out", str(reports)]) == 0
+    table = doc_tables.render(reports, "data_stats", "table1", "1")
     assert "| `synthetic_sun3d` | 500 | 2.00 ± 0.50 | 10.6 ± 7.5 | 2.00 ± 0.25 | 5.2 ± 4.6 | SUN3D |" in table
 
 

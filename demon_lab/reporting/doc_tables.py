@@ -9,12 +9,12 @@ A page holds a table between two markers::
 naming a study, one of its tables and a test set. ``python -m demon_lab.report --docs`` writes each
 such block from ``reports/<study>.csv`` (the cells the report command wrote: mean ± 95 % half-width,
 n), so a number a reader sees in the docs is a report's cell, and :func:`stale_blocks` names the
-blocks that differ from what their report says now (a test runs it on README and docs/). The block
-``<!-- report: data_stats table1 presets -->`` is the synthetic presets' camera statistics, from the
-``reports/data_stats_<preset>.json`` files that ``python -m demon_lab.data_stats`` writes, beside the
-supplementary's Table 1 (``ablations/paper_table1.csv``); ``<!-- report: bench SECTION K -->`` is the
-K-th table (from 1) of ``reports/bench.md``'s section SECTION, which ``python -m demon_lab.bench
-SECTION`` writes; ``<!-- report: diagnose NAME SET -->`` is the per-pass diagnosis of test set SET in
+blocks that differ from what their report says now (a test runs it on README and docs/).
+``<!-- report: bench SECTION K -->`` is the K-th table (from 1) of ``reports/bench.md``'s section
+SECTION, which ``python -m demon_lab.bench SECTION`` writes, and ``<!-- report: data_stats table1 1 -->``
+the presets' camera statistics beside the supplementary's Table 1 in ``reports/data_stats.md``
+(:func:`camera_statistics`, ``python -m demon_lab.report --data-stats``);
+``<!-- report: diagnose NAME SET -->`` is the per-pass diagnosis of test set SET in
 ``reports/diagnose/NAME_seed*.json``, which ``python -m demon_lab.diagnose seed=S --out FILE`` writes.
 """
 
@@ -26,7 +26,8 @@ from collections.abc import Iterable
 from pathlib import Path
 
 from demon_lab.core.metrics import column
-from demon_lab.reporting.tables import number
+from demon_lab.reporting.tables import Cell
+from demon_lab.reporting.writers import cell_text
 from demon_lab.resources import STUDIES
 
 PRESETS = {"synthetic_scenes11": "Scenes11", "synthetic_sun3d": "SUN3D", "synthetic_mvs": "MVS"}
@@ -35,14 +36,19 @@ PRESETS = {"synthetic_scenes11": "Scenes11", "synthetic_sun3d": "SUN3D", "synthe
 BLOCK = re.compile(r"(<!-- report: (\S+) (\S+) (\S+) -->\n)(.*?)(<!-- /report -->)", re.S)
 
 
-def render_camera_statistics(reports: Path) -> str:
-    """The presets' rotation and triangulation angles (mean ± standard deviation over the pairs the
-    data_stats command rendered) beside the supplementary's Table 1."""
+def camera_statistics(reports: Path) -> str:
+    """``reports/data_stats.md``: the presets' rotation and triangulation angles (mean ± standard
+    deviation over the pairs the data_stats command rendered) beside the supplementary's Table 1."""
     import json
 
     with open(STUDIES / "paper_table1.csv", newline="") as f:
         paper = {r["dataset"]: r for r in csv.DictReader(f)}
-    lines = ["| preset | pairs | rotation (°), mean ± std | paper | triangulation (°), mean ± std | paper "
+    lines = ["# The synthetic presets' camera statistics beside the supplementary's Table 1", "",
+             "Written by `python -m demon_lab.report --data-stats` from `reports/data_stats_<preset>.json`, which "
+             "`python -m demon_lab.data_stats data=<preset> n=500 out=reports/data_stats_<preset>.json` writes, and "
+             "`ablations/paper_table1.csv` (the supplementary's Table 1). Angles in degrees, mean ± standard "
+             "deviation over the pairs.", "", "## table1", "",
+             "| preset | pairs | rotation (°), mean ± std | paper | triangulation (°), mean ± std | paper "
              "| paper dataset |", "|---|---|---|---|---|---|---|"]
     for preset, dataset in PRESETS.items():
         stats = json.loads((Path(reports) / f"data_stats_{preset}.json").read_text())
@@ -50,22 +56,24 @@ def render_camera_statistics(reports: Path) -> str:
         lines.append(f"| `{preset}` | {stats['n_pairs']} | {stats['rot_mean_deg']:.2f} ± {stats['rot_std_deg']:.2f} | "
                      f"{ref['rot_mean_deg']} ± {ref['rot_std_deg']} | {stats['tri_mean_deg']:.2f} ± "
                      f"{stats['tri_std_deg']:.2f} | {ref['tri_mean_deg']} ± {ref['tri_std_deg']} | {dataset} |")
-    lines.append("")
-    lines.append("*From reports/data_stats_PRESET.json, which `python -m demon_lab.data_stats data=PRESET n=500 "
-                 "out=reports/data_stats_PRESET.json` writes; the paper's columns: `ablations/paper_table1.csv` "
-                 "(supplementary Table 1); `python -m demon_lab.report --docs` writes this table.*")
     return "\n".join(lines) + "\n"
 
 
-def render_bench(reports: Path, section: str, index: str) -> str:
-    """The ``index``-th table (from 1) of ``reports/bench.md``'s section ``## section``, as written."""
-    text = (Path(reports) / "bench.md").read_text()
+COPIED = {"bench": "python -m demon_lab.bench {section}", "data_stats": "python -m demon_lab.report --data-stats"}
+"""The reports whose tables a block copies as written (``<!-- report: NAME SECTION K -->``: the K-th
+table, from 1, of the section ``## SECTION`` of ``reports/NAME.md``), and the command that writes each."""
+
+
+def render_copied(reports: Path, name: str, section: str, index: str) -> str:
+    """The ``index``-th table of ``reports/<name>.md``'s section ``## section``, as written."""
+    text = (Path(reports) / f"{name}.md").read_text()
     found = re.search(rf"^## {re.escape(section)}\n(.*?)(?=^## |\Z)", text, re.S | re.M)
     tables = re.findall(r"(?:^\|.*\n)+", found.group(1), re.M) if found else []
     if not 0 < int(index) <= len(tables):
-        raise ValueError(f"{reports}/bench.md: section {section!r} has no table {index}")
-    return (tables[int(index) - 1] + f"\n*From [reports/bench.md](reports/bench.md), section `{section}`; "
-            f"`python -m demon_lab.bench {section}` writes it, `python -m demon_lab.report --docs` this table.*\n")
+        raise ValueError(f"{reports}/{name}.md: section {section!r} has no table {index}")
+    command = COPIED[name].format(section=section)
+    return (tables[int(index) - 1] + f"\n*From [reports/{name}.md](reports/{name}.md), section `{section}`; "
+            f"`{command}` writes it, `python -m demon_lab.report --docs` this table.*\n")
 
 
 def render_diagnose(reports: Path, name: str, dataset: str) -> str:
@@ -93,12 +101,11 @@ def render_diagnose(reports: Path, name: str, dataset: str) -> str:
 
 def render(reports: Path, study: str, table: str, dataset: str) -> str:
     """The Markdown table of ``study``'s ``table`` on ``dataset``, from ``reports/<study>.csv``: one line
-    per row with n and each metric's mean ± 95 % half-width (the mean alone for one seed), and a last
-    line naming its source (``data_stats table1 presets``: :func:`render_camera_statistics`)."""
-    if (study, table, dataset) == ("data_stats", "table1", "presets"):
-        return render_camera_statistics(reports)
-    if study == "bench":
-        return render_bench(reports, table, dataset)
+    per row with n and each metric's cell as the report prints it (mean ± 95 % half-width; the mean
+    alone for one seed; "(n = k)" where fewer seeds than the row's logged a value), and a last line
+    naming its source (``data_stats table1 presets``: :func:`render_camera_statistics`)."""
+    if study in COPIED:
+        return render_copied(reports, study, table, dataset)
     if study == "diagnose":
         return render_diagnose(reports, table, dataset)
     path = Path(reports) / f"{study}.csv"
@@ -115,8 +122,8 @@ def render(reports: Path, study: str, table: str, dataset: str) -> str:
         n = max(int(r["n"]) for r in mine.values())
         if n == 0:
             continue
-        text = [number(float(mine[m]["mean"]))
-                + (f" ± {number(float(mine[m]['ci95']))}" if int(mine[m]["n"]) > 1 else "") for m in metrics]
+        text = [cell_text(Cell(mean=float(mine[m]["mean"]), ci95=float(mine[m]["ci95"]), n=int(mine[m]["n"])),
+                          n, " ± ", " (n = {})") for m in metrics]
         lines.append(f"| {row} | {n} | " + " | ".join(text) + " |")
     lines.append("")
     lines.append(f"*From [reports/{study}.md](reports/{study}.md), table `{table}`, {dataset}; "

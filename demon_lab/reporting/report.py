@@ -247,6 +247,9 @@ def main(argv: Sequence[str] | None = None) -> int:
                         help="last write the named studies' runs to a run archive (a zip file)")
     parser.add_argument("--without-images", action="store_true",
                         help="with --export: leave out the jobs' depth panels (the qualitative figures' input)")
+    parser.add_argument("--data-stats", action="store_true",
+                        help="write reports/data_stats.md: the synthetic presets' camera statistics (their "
+                             "data_stats_*.json in --out) beside the supplementary's Table 1")
     parser.add_argument("--docs", action="store_true",
                         help="last write the result tables between <!-- report: STUDY TABLE SET --> markers in "
                              "README.md and docs/ from the reports (run from the repository's root)")
@@ -257,8 +260,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--studies", type=Path, default=STUDIES, help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     names = sorted(p.stem for p in args.studies.glob("*.yaml")) if args.all else list(args.names)
-    if not names and not args.imports and not args.experiments and not args.docs:
-        parser.error("name a study spec, pass --all, --experiment NAME or --docs")
+    if not names and not args.imports and not args.experiments and not args.docs and not args.data_stats:
+        parser.error("name a study spec, pass --all, --experiment NAME, --data-stats or --docs")
     if args.export and not names:
         parser.error("--export writes the runs of the studies named")
     from demon_lab.reporting.archive import export_runs, import_runs
@@ -287,6 +290,11 @@ def main(argv: Sequence[str] | None = None) -> int:
             print(f"error: {e}", file=sys.stderr)
             return 2
         print(f"[demon_lab.report] experiment {experiment}: " + ", ".join(str(p) for p in paths.values()), flush=True)
+    if args.data_stats:
+        from demon_lab.reporting import doc_tables
+
+        (args.out / "data_stats.md").write_text(doc_tables.camera_statistics(args.out))
+        print(f"[demon_lab.report] {args.out / 'data_stats.md'}", flush=True)
     if args.docs:
         from demon_lab.reporting import doc_tables
 
