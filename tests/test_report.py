@@ -541,15 +541,23 @@ def test_a_spec_of_one_design_extends_another_and_counts_only_runs_of_its_design
                 tracker.log_metrics(run, {"test/setA/it0/l1_inv": base + seed + (row == "b"),
                                           "test/setA/it0/tran_deg": 1.0})
                 tracker.finish(run, "FINISHED")
+    for seed in range(3):  # a classical method's runs (the learned design's params, as its sweep logs them)
+        run = tracker.start(f"c{seed}", {f"{TAG}run_key": f"c{seed}", f"{TAG}row": "c", f"{TAG}seed": str(seed),
+                                         **version_tags()})
+        tracker.log_params(run, {"seed": str(seed), "method": "base_ff", **designs["learned"]})
+        tracker.log_metrics(run, {"test/setA/it0/l1_inv": 50.0, "test/setA/it0/tran_deg": 1.0})
+        tracker.finish(run, "FINISHED")
     _spec(tmp_path, design="profile")
     spec = yaml.safe_load((tmp_path / "study.yaml").read_text())
+    spec["tables"][0]["rows"].append({"label": "row c", "match": {"row": "c"}, "metrics": "it0"})
     spec["tables"][0]["differences"] = [{"label": "a minus b", "rows": ["row a", "row b"]}]
     (tmp_path / "study.yaml").write_text(yaml.safe_dump(spec))
     (tmp_path / "study_learned.yaml").write_text(yaml.safe_dump(
         {"extends": "study", "title": "The study, learned", "design": "learned", "drop_rows": ["row b"]}))
     learned = report.load_spec("study_learned", tmp_path)
     assert learned["runs"] == [["+experiment=study", "design=learned"]] and learned["datasets"] == {"setA": "SUN3D"}
-    assert [r["label"] for r in learned["tables"][0]["rows"]] == ["row a"] and learned["tables"][0]["differences"] == []
+    assert [r["label"] for r in learned["tables"][0]["rows"]] == ["row a", "row c"]
+    assert learned["tables"][0]["differences"] == []
     assert report.load_spec("study", tmp_path)["runs"] == [["+experiment=study"]]
 
     def means(name: str) -> dict[str, float]:
@@ -557,15 +565,19 @@ def test_a_spec_of_one_design_extends_another_and_counts_only_runs_of_its_design
         with open(paths["csv"], newline="") as f:
             return {r["row"]: float(r["mean"]) for r in csv.DictReader(f) if r["metric"] == "l1_inv"}
 
-    assert means("study") == {"row a": 2.0, "row b": 3.0, "a minus b": -1.0}
-    assert means("study_learned") == {"row a": 101.0}
-    assert "- design: the learned design (" in (tmp_path / "reports" / "study_learned.md").read_text()
+    assert means("study") == {"row a": 2.0, "row b": 3.0, "row c": 50.0, "a minus b": -1.0}
+    assert means("study_learned") == {"row a": 101.0, "row c": 50.0}  # a classical method measures no design
+    md = (tmp_path / "reports" / "study_learned.md").read_text()
+    assert "- design: the learned design; no net (a classical method) (" in md
     assert report.study_of("study", tmp_path, design="learned") == "study_learned"
     # a scale's own design is the profile's spec's: DeMoN's design at the smoke and paper scales
     assert provenance.shipped({}) == "profile" and provenance.shipped(designs["learned"]) == "learned"
     assert report.study_of("study", tmp_path, design="profile") == report.study_of("study", tmp_path) == "study"
     (tmp_path / "bad.yaml").write_text(yaml.safe_dump({"extends": "study", "design": "fast"}))
     with pytest.raises(report.ReportError, match="design: expected one of \\['learned', 'profile'\\], got 'fast'"):
+        report.load_spec("bad", tmp_path)
+    (tmp_path / "bad.yaml").write_text(yaml.safe_dump({"extends": "study", "drop_rows": ["row z"]}))
+    with pytest.raises(report.ReportError, match="drop_rows: \\['row z'\\] are rows of no table of study"):
         report.load_spec("bad", tmp_path)
 
 

@@ -238,11 +238,11 @@ def _print_study_rows(cfg: DictConfig) -> None:
         return
     from demon_lab.reporting import provenance, report
 
-    design = provenance.config_design(cfg)
-    study = report.study_of(str(cfg.experiment), design=design)
-    if study is None:
-        return
+    study = None
     try:
+        study = report.study_of(str(cfg.experiment), design=provenance.config_design(cfg))
+        if study is None:
+            return
         text = report.study_rows(study, cfg.tracking.uri, str(cfg.experiment))
     except Exception as e:  # the job's own result is recorded and printed either way
         log.warning("study %s: no table of its rows (%s: %s)", study, type(e).__name__, e)

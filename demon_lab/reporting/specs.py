@@ -72,6 +72,9 @@ def _read(name: str, directory: Path) -> dict[str, Any]:
         raise ReportError(f"{_shown(name, directory)}: extends itself")
     dropped = set(spec.pop("drop_rows", None) or [])
     spec = {**_read(base, directory), **spec}
+    unknown = dropped - {row["label"] for table in spec.get("tables", []) for row in table["rows"]}
+    if unknown:
+        raise ReportError(f"{_shown(name, directory)}: drop_rows: {sorted(unknown)} are rows of no table of {base}")
     tables = []
     for table in spec.get("tables", []):
         rows = [r for r in table["rows"] if r["label"] not in dropped]
