@@ -839,7 +839,8 @@ def test_each_job_is_composed_twice_and_handed_the_parent_run(sweep, tmp_path):
     compose nothing), the parent run reaches every job of a sweep (no single run gets one), and a job
     that fails neither stops the sweep nor goes uncounted. Besides, Hydra composes the command's
     primary config in multirun mode to read ``hydra.mode`` from it (``Hydra.get_mode``, before
-    anything else), and a sweep's primary config is composed by the check and by Hydra's multirun."""
+    anything else), a sweep's primary config is composed by the check and by Hydra's multirun, and the
+    sweep's table of its study rows composes each shipped design once, to name its runs' designs."""
     import json
 
     args = ["-m", *smoke_overrides(tmp_path), "seed=0,1,2"] if sweep else [*smoke_overrides(tmp_path), "seed=0"]
@@ -847,10 +848,16 @@ def test_each_job_is_composed_twice_and_handed_the_parent_run(sweep, tmp_path):
                             timeout=600)
     (line,) = [x for x in result.stdout.splitlines() if x.startswith("COUNTED ")]
     counted = json.loads(line.removeprefix("COUNTED "))
-    jobs = [tuple(o) for mode, o in counted["loads"] if mode == "RUN"]
+    from demon_lab.reporting.provenance import NAMED
+
+    composed = [tuple(o) for mode, o in counted["loads"] if mode == "RUN"]
+    jobs = [o for o in composed if f"cache_dir={tmp_path}/cache" in o]
     primaries = [o for mode, o in counted["loads"] if mode == "MULTIRUN"]
     seeds = [0, 1, 2] if sweep else [0]
     assert len(jobs) == 2 * len(seeds) and all(jobs.count(j) == 2 for j in jobs), counted["loads"]
+    # the sweep's table of its study rows names each run's design: each shipped design composed once
+    designs = sorted(tuple(o) for o in NAMED.values()) if sweep else []
+    assert sorted(o for o in composed if o not in jobs) == designs, counted["loads"]
     assert sorted({o for j in jobs for o in j if o.startswith("seed=")}) == [f"seed={s}" for s in seeds]
     assert len(primaries) == (3 if sweep else 1)  # Hydra's mode probe; a sweep's check and multirun
     if not sweep:
