@@ -15,6 +15,7 @@ from conftest import SUN3D_PAIR
 
 from demon_lab import resources
 from demon_lab.core import geometry as geo
+from demon_lab.core import warping
 from demon_lab.data import sample as smp
 from demon_lab.data import synthetic
 from demon_lab.data.datasets import (
@@ -51,7 +52,7 @@ def _flow_of(sample: dict) -> torch.Tensor:
 def _photometric_error(sample: dict) -> tuple[float, float]:
     """Mean |image1 - warp(image2, GT flow)| on visible pixels, and without the warp."""
     flow = torch.nan_to_num(sample["flow"], nan=0.0)[None]
-    warped = geo.warp_image(sample["image2"][None], flow)[0]
+    warped = warping.warp_image(sample["image2"][None], flow)[0]
     seen = sample["visible"][0] & (warped.abs().sum(0) > 0)
     err = (warped - sample["image1"]).abs().mean(0)[seen].mean().item()
     base = (sample["image2"] - sample["image1"]).abs().mean(0)[seen].mean().item()
@@ -801,7 +802,7 @@ def test_layered_pairs_are_a_function_of_the_seed_and_their_flow_maps_view1_onto
     """Image 2 sampled at p + flow(p) is image 1 (up to bilinear resampling of 8-bit textures) where
     p + flow lands inside view 2 and the layer is not hidden there; with zero flow, or the flow's sign
     or normalisation wrong, it is not."""
-    from demon_lab.core.geometry import warp_image
+    from demon_lab.core.warping import warp_image
     from demon_lab.data.layers import render_layers
 
     a, b = render_layers(3, (96, 128)), render_layers(3, (96, 128))

@@ -14,7 +14,7 @@ import torch
 from conftest import DEVICES, random_scene
 from torch.utils.data import default_collate
 
-from demon_lab.core import execution, losses
+from demon_lab.core import execution, loss_maps, losses, warping
 from demon_lab.core import geometry as geo
 from demon_lab.nets.chain import DeMoN
 from demon_lab.pipeline.stages.modules import DepthMotionStage, FlowStage
@@ -61,15 +61,16 @@ def test_geometry_layers_on_the_device_match_float64(device):
     inv, motion, K = random_scene(2, 48, 64, seed=3)
     image = torch.rand(2, 3, 48, 64, dtype=torch.float64, generator=torch.Generator().manual_seed(3))
     ref = {"flow": geo.flow_from_depth_motion(inv, motion, K), "normals": geo.normals_from_depth(inv, K),
-           "R": geo.angle_axis_to_matrix(motion[:, :3]), "pyramid": geo.inverse_depth_pyramid(inv, levels=3)[3]}
+           "R": geo.angle_axis_to_matrix(motion[:, :3]), "pyramid": loss_maps.inverse_depth_pyramid(inv, levels=3)[3]}
     ref["depth"] = geo.depth_from_flow_motion(ref["flow"], motion, K)
-    ref["warp"] = geo.warp_image(image, ref["flow"])
+    ref["warp"] = warping.warp_image(image, ref["flow"])
     ref["r"] = geo.matrix_to_angle_axis(ref["R"])
     d_inv, d_motion, d_K, d_image = (x.to(device, torch.float32) for x in (inv, motion, K, image))
     got = {"flow": geo.flow_from_depth_motion(d_inv, d_motion, d_K), "normals": geo.normals_from_depth(d_inv, d_K),
-           "R": geo.angle_axis_to_matrix(d_motion[:, :3]), "pyramid": geo.inverse_depth_pyramid(d_inv, levels=3)[3]}
+           "R": geo.angle_axis_to_matrix(d_motion[:, :3]),
+           "pyramid": loss_maps.inverse_depth_pyramid(d_inv, levels=3)[3]}
     got["depth"] = geo.depth_from_flow_motion(ref["flow"].to(device, torch.float32), d_motion, d_K)
-    got["warp"] = geo.warp_image(d_image, ref["flow"].to(device, torch.float32))
+    got["warp"] = warping.warp_image(d_image, ref["flow"].to(device, torch.float32))
     got["r"] = geo.matrix_to_angle_axis(ref["R"].to(device, torch.float32))
     for key in ref:
         assert got[key].device.type == device and got[key].dtype == torch.float32, key

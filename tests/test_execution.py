@@ -13,7 +13,7 @@ from conftest import random_scene
 from omegaconf import open_dict
 from test_pipeline import DEMON_DESIGN, client, compose_config, smoke_overrides
 
-from demon_lab.core import execution, losses
+from demon_lab.core import execution, loss_maps, losses, warping
 from demon_lab.core import geometry as geo
 from demon_lab.nets.chain import DeMoN, depth_motion_net_inputs, flow_net_inputs, ground_truth_inputs
 from demon_lab.pipeline.config import ConfigError
@@ -55,11 +55,11 @@ ISLANDS = {
     "reproject": lambda inv, m, K, f, im, p: geo.reproject(inv, m, K),
     "triangulation_angle": lambda inv, m, K, f, im, p: geo.triangulation_angle(inv, m, K),
     "visibility_mask": lambda inv, m, K, f, im, p: geo.visibility_mask(inv, m, K),
-    "warp_image": lambda inv, m, K, f, im, p: geo.warp_image(im, torch.nan_to_num(f)),
-    "warp2d": lambda inv, m, K, f, im, p: geo.warp2d(im, torch.nan_to_num(f)),
-    "scale_invariant_gradients": lambda inv, m, K, f, im, p: geo.scale_invariant_gradients(p),
-    "median_downsample": lambda inv, m, K, f, im, p: geo.median_downsample(p),
-    "inverse_depth_pyramid": lambda inv, m, K, f, im, p: geo.inverse_depth_pyramid(p, levels=3),
+    "warp_image": lambda inv, m, K, f, im, p: warping.warp_image(im, torch.nan_to_num(f)),
+    "warp2d": lambda inv, m, K, f, im, p: warping.warp2d(im, torch.nan_to_num(f)),
+    "scale_invariant_gradients": lambda inv, m, K, f, im, p: loss_maps.scale_invariant_gradients(p),
+    "median_downsample": lambda inv, m, K, f, im, p: loss_maps.median_downsample(p),
+    "inverse_depth_pyramid": lambda inv, m, K, f, im, p: loss_maps.inverse_depth_pyramid(p, levels=3),
     "sig_loss": lambda inv, m, K, f, im, p: losses.sig_loss(p, inv),
     # (the predictions: slices and flips of the inputs, exact in any precision; the targets from the
     # float32 batch, as training computes them)
@@ -109,19 +109,21 @@ def test_an_island_casts_half_inputs_outside_autocast_too():
     """An island called from another (where autocast is already off) still computes in float32."""
     *_, pred = _scene_inputs()
     half = pred.bfloat16()
-    got = geo.scale_invariant_gradients(half)
+    got = loss_maps.scale_invariant_gradients(half)
     assert got.dtype == torch.float32
-    torch.testing.assert_close(got, geo.scale_invariant_gradients(half.float()), rtol=0, atol=0, equal_nan=True)
-    assert geo.scale_invariant_gradients.__wrapped__(half).dtype == torch.bfloat16  # without the island
+    torch.testing.assert_close(got, loss_maps.scale_invariant_gradients(half.float()), rtol=0, atol=0, equal_nan=True)
+    assert loss_maps.scale_invariant_gradients.__wrapped__(half).dtype == torch.bfloat16  # without the island
 
 
 def test_every_geometry_layer_and_loss_is_an_island():
     """A new public geometry function or loss gets the float32 island too (or a reason here)."""
     import inspect
 
-    not_islands = {"valid_depth": "a comparison: exact in any precision"}
-    for module, names in ((geo, None), (losses, ("sig_loss", "flow_loss", "depth_motion_loss", "refine_loss",
-                                                  "pointwise_l2", "vector_loss", "confidence_target"))):
+    not_islands = {"valid_depth": "a comparison: exact in any precision",
+                   "check_map": "a shape check", "normalised_grid": "pixel centres, made in the input's own dtype"}
+    loss_names = ("sig_loss", "flow_loss", "depth_motion_loss", "refine_loss", "pointwise_l2", "vector_loss",
+                  "confidence_target")
+    for module, names in ((geo, None), (warping, None), (loss_maps, None), (losses, loss_names)):
         for name, fn in inspect.getmembers(module, inspect.isfunction):
             if fn.__module__ != module.__name__ or name.startswith("_") or name in not_islands:
                 continue

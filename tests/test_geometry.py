@@ -12,6 +12,7 @@ import torch
 from conftest import DEVICES, random_scene, rotation_about
 
 from demon_lab.core import geometry as geo
+from demon_lab.core import loss_maps, warping
 
 K_DEMON = torch.tensor([geo.DEMON_INTRINSICS], dtype=torch.float64)
 
@@ -259,7 +260,7 @@ def test_warp_matches_cv2_remap_in_the_interior():
     H, W = 48, 64
     image = (rng.random((H, W, 3)) - 0.5).astype(np.float32)
     flow = ((rng.random((2, H, W)) - 0.5) * 0.2).astype(np.float32)
-    ours = geo.warp_image(torch.from_numpy(image).permute(2, 0, 1)[None],
+    ours = warping.warp_image(torch.from_numpy(image).permute(2, 0, 1)[None],
                           torch.from_numpy(flow)[None])[0].permute(1, 2, 0).numpy()
     mx = (np.arange(W)[None] + W * flow[0]).astype(np.float32)
     my = (np.arange(H)[:, None] + H * flow[1]).astype(np.float32)
@@ -276,18 +277,18 @@ def test_warp_requires_all_four_neighbours_inside():
     H, W = 4, 5
     image = torch.arange(H * W, dtype=torch.float64).view(1, 1, H, W) + 1
     flow = torch.zeros(1, 2, H, W, dtype=torch.float64)
-    out = geo.warp_image(image, flow)
+    out = warping.warp_image(image, flow)
     # Zero flow samples exactly at pixel centres: the last row/column have a neighbour outside.
     np.testing.assert_allclose(out[0, 0, :-1, :-1].numpy(), image[0, 0, :-1, :-1].numpy(), rtol=1e-14)
     assert (out[0, 0, -1] == 0).all() and (out[0, 0, :, -1] == 0).all()
     # Half a pixel right: the bilinear mean of two neighbours.
     flow[:, 0] = 0.5 / W
-    out = geo.warp_image(image, flow)
+    out = warping.warp_image(image, flow)
     assert out[0, 0, 1, 1].item() == pytest.approx((image[0, 0, 1, 1] + image[0, 0, 1, 2]).item() / 2)
     # Left of the image and NaN flow give 0.
     flow[:, 0] = -0.5 / W
     flow[0, 0, 2, 2] = math.nan
-    out = geo.warp_image(image, flow)
+    out = warping.warp_image(image, flow)
     assert (out[0, 0, :, 0] == 0).all() and out[0, 0, 2, 2] == 0
 
 
@@ -306,7 +307,7 @@ def test_warp_with_ground_truth_flow_reproduces_view_1():
     v = ((torch.arange(H) + 0.5) / H).double().view(H, 1)
     image1 = texture(u, v)
     image2 = texture(u - flow[0, 0, 0, 0], v - flow[0, 1, 0, 0])
-    out = geo.warp_image(image2.view(1, 1, H, W), flow)[0, 0]
+    out = warping.warp_image(image2.view(1, 1, H, W), flow)[0, 0]
     seen = out != 0
     assert seen.double().mean() > 0.85
     assert (out - image1)[seen].abs().max() < 2e-3
@@ -346,23 +347,23 @@ def test_fronto_parallel_normals_point_at_the_camera_and_invalid_neighbours_give
 
 def test_scale_invariant_gradients_hand_computed():
     x = torch.tensor([[[[1.0, 3.0, -1.0], [2.0, 2.0, 0.0]]]])  # (1, 1, 2, 3)
-    g = geo.scale_invariant_gradients(x, spacings=(1, 2), eps=0.0)
+    g = loss_maps.scale_invariant_gradients(x, spacings=(1, 2), eps=0.0)
     assert g.shape == (1, 1, 4, 2, 3)
     gx1, gy1, gx2, gy2 = g[0, 0]
     torch.testing.assert_close(gx1, torch.tensor([[2 / 4, -4 / 4, 0], [0 / 4, -2 / 2, 0]]))
     torch.testing.assert_close(gy1, torch.tensor([[1 / 3, -1 / 5, 1 / 1], [0, 0, 0]]))
     torch.testing.assert_close(gx2, torch.tensor([[-2 / 2, 0, 0], [-2 / 2, 0, 0]]))
     assert (gy2 == 0).all()  # spacing 2 reaches outside a 2-row image
-    eps = geo.scale_invariant_gradients(x, spacings=(1,), eps=1.0)[0, 0, 0]
+    eps = loss_maps.scale_invariant_gradients(x, spacings=(1,), eps=1.0)[0, 0, 0]
     assert eps[0, 0].item() == pytest.approx(2 / 5)
 
 
 def test_scale_invariant_gradients_are_scale_invariant_and_propagate_nan():
     x = torch.rand(2, 2, 16, 20) + 0.1
-    torch.testing.assert_close(geo.scale_invariant_gradients(x, eps=0),
-                               geo.scale_invariant_gradients(7 * x, eps=0))
+    torch.testing.assert_close(loss_maps.scale_invariant_gradients(x, eps=0),
+                               loss_maps.scale_invariant_gradients(7 * x, eps=0))
     x[0, 0, 5, 5] = math.nan
-    g = geo.scale_invariant_gradients(x)
+    g = loss_maps.scale_invariant_gradients(x)
     assert g.shape == (2, 2, 10, 16, 20)
     assert torch.isnan(g[0, 0, 0, 5, 5]) and torch.isnan(g[0, 0, 0, 5, 4])
     assert torch.isfinite(g[1]).all()
@@ -394,7 +395,7 @@ def test_median_downsample_matches_the_kernel_including_nan(shape, nan):
     x = rng.random(shape)
     x[rng.random(shape) < nan] = np.nan
     x[rng.random(shape) < 0.05] = np.inf
-    ours = geo.median_downsample(torch.from_numpy(x)[None, None])[0, 0].numpy()
+    ours = loss_maps.median_downsample(torch.from_numpy(x)[None, None])[0, 0].numpy()
     np.testing.assert_array_equal(ours, _median_kernel_reference(x))
 
 
@@ -402,7 +403,7 @@ def test_the_median_network_sorts_every_input():
     # 0-1 principle: a comparator network that sorts every sequence of 0s and 1s sorts every input.
     bits = torch.tensor(list(itertools.product([0.0, 1.0], repeat=9)))
     v = list(bits.T)
-    for i, j in geo.MEDIAN9_NETWORK:
+    for i, j in loss_maps.MEDIAN9_NETWORK:
         v[i], v[j] = torch.minimum(v[i], v[j]), torch.maximum(v[i], v[j])
     assert torch.equal(torch.stack(v, 1), bits.sort(dim=1).values)
 
@@ -411,13 +412,13 @@ def test_median_downsample_without_nan_is_the_median():
     x = torch.tensor([[[[5.0, 1, 9, 2], [7, 3, 4, 8], [6, 0, 2, 1]]]])
     # centre (0,0): clamped window [5,5,1,5,5,1,7,7,3] -> 5; centre (0,2): [1,9,2,1,9,2,3,4,8] -> 3
     # centre (2,0): [7,7,3,6,6,0,6,6,0] -> 6; centre (2,2): [3,4,8,0,2,1,0,2,1] -> 2
-    torch.testing.assert_close(geo.median_downsample(x), torch.tensor([[[[5.0, 3], [6, 2]]]]))
+    torch.testing.assert_close(loss_maps.median_downsample(x), torch.tensor([[[[5.0, 3], [6, 2]]]]))
 
 
 def test_inverse_depth_pyramid_sizes_and_invalid_pixels():
     inv = torch.rand(2, 1, 192, 256) + 0.1
     inv[:, :, :8, :8] = 0  # invalid marker 0 becomes NaN, not a median value
-    levels = geo.inverse_depth_pyramid(inv)
+    levels = loss_maps.inverse_depth_pyramid(inv)
     assert [tuple(x.shape[2:]) for x in levels] == [(192, 256), (96, 128), (48, 64), (24, 32),
                                                      (12, 16), (6, 8)]
     assert torch.isnan(levels[0][:, :, :8, :8]).all() and torch.isnan(levels[2][:, :, 0, 0]).all()
@@ -438,7 +439,7 @@ def test_batched_results_equal_per_sample_results(device, dtype):
     outputs = {
         "flow": flow,
         "depth": geo.depth_from_flow_motion(flow, motion, K),
-        "warp": geo.warp_image(image, flow),
+        "warp": warping.warp_image(image, flow),
         "normals": geo.normals_from_depth(inv, K),
     }
     for b in range(3):
@@ -446,7 +447,7 @@ def test_batched_results_equal_per_sample_results(device, dtype):
         single = {
             "flow": geo.flow_from_depth_motion(inv[s], motion[s], K[s]),
             "depth": geo.depth_from_flow_motion(flow[s], motion[s], K[s]),
-            "warp": geo.warp_image(image[s], flow[s]),
+            "warp": warping.warp_image(image[s], flow[s]),
             "normals": geo.normals_from_depth(inv[s], K[s]),
         }
         for key, value in single.items():
@@ -469,12 +470,12 @@ def test_gradcheck_differentiable_functions():
     # (border pixels are NaN by definition: check the interior)
     assert torch.autograd.gradcheck(lambda d: geo.normals_from_depth(d, K)[..., 1:-1, 1:-1], (inv,))
     x = (torch.rand(1, 2, 5, 6, dtype=torch.float64) + 0.2).requires_grad_(True)
-    assert torch.autograd.gradcheck(lambda a: geo.scale_invariant_gradients(a, (1, 2)), (x,))
+    assert torch.autograd.gradcheck(lambda a: loss_maps.scale_invariant_gradients(a, (1, 2)), (x,))
     image = torch.rand(1, 2, 6, 7, dtype=torch.float64, requires_grad=True)
     # sample positions away from integer pixels, where bilinear weights are smooth
     small = ((torch.rand(1, 2, 6, 7, dtype=torch.float64) * 0.6 + 0.2) / torch.tensor([7.0, 6.0],
              dtype=torch.float64).view(1, 2, 1, 1)).requires_grad_(True)
-    assert torch.autograd.gradcheck(geo.warp_image, (image, small))
+    assert torch.autograd.gradcheck(warping.warp_image, (image, small))
 
 
 def test_gradients_are_finite_with_invalid_depth():
@@ -503,7 +504,7 @@ def test_gradients_are_finite_with_invalid_depth():
      r"intrinsics: expected finite"),
     (lambda: geo.depth_from_flow_motion(torch.rand(1, 3, 4, 4), torch.rand(1, 6), K_DEMON.float()),
      r"flow: expected shape \(B, 2, H, W\)"),
-    (lambda: geo.warp_image(torch.rand(1, 3, 4, 4), torch.rand(1, 2, 4, 5)),
+    (lambda: warping.warp_image(torch.rand(1, 3, 4, 4), torch.rand(1, 2, 4, 5)),
      r"flow: expected shape \(1, 2, 4, 4\)"),
     (lambda: geo.normals_from_depth(torch.rand(1, 1, 4, 4), torch.rand(2, 4)),
      r"intrinsics: expected batch size 1"),

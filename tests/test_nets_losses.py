@@ -425,12 +425,13 @@ def test_ground_truth_is_computed_as_a_loss_reads_it_with_the_eager_values():
     """The loss targets are DeMoN's prepare_ground_truth_tensors, tensor by tensor, computed on
     first access: a flow stage builds no normals and no deeper pyramid than level 5 needs."""
     from demon_lab.core import geometry as geo
+    from demon_lab.core import loss_maps
 
     torch.manual_seed(5)
     batch = {"inv_depth": torch.rand(2, 1, 64, 96) + 0.2, "motion": torch.tensor([[0.02, 0.1, 0, 1.0, 0.1, 0]] * 2),
              "intrinsics": torch.tensor([[0.9, 1.2, 0.5, 0.5]] * 2)}
     batch["inv_depth"][0, 0, :3, :3] = 0  # invalid pixels become NaN in the pyramid
-    pyramid = geo.inverse_depth_pyramid(batch["inv_depth"], levels=5)
+    pyramid = loss_maps.inverse_depth_pyramid(batch["inv_depth"], levels=5)
     k = batch["intrinsics"]
     eager = {"inv_depth0": pyramid[0], "inv_depth2": pyramid[2], "inv_depth5": pyramid[5],
              "flow2": geo.flow_from_depth_motion(pyramid[2], batch["motion"], k, k),
@@ -564,14 +565,15 @@ def test_the_bootstrap_flow_net_with_a_prior_predicts_a_correction_of_it():
 
 def test_the_ransac_motion_prior_recovers_the_motion_from_its_flow():
     from demon_lab.core import geometry as geo
-    from demon_lab.core import metrics
+    from demon_lab.core import loss_maps, metrics
     from demon_lab.data import synthetic
     from demon_lab.nets.prior import ransac_motion
 
     flows, cams, motions = [], [], []
     for seed in (1, 2):
         s = synthetic.render_pair("synthetic_scenes11", seed, (96, 128))
-        inv2 = geo.inverse_depth_pyramid(torch.as_tensor(s["inv_depth"]).float().reshape(1, 1, 96, 128), levels=2)[2]
+        inv = torch.as_tensor(s["inv_depth"]).float().reshape(1, 1, 96, 128)
+        inv2 = loss_maps.inverse_depth_pyramid(inv, levels=2)[2]
         motion, K = torch.as_tensor(s["motion"]).float()[None], torch.as_tensor(s["intrinsics"]).float()[None]
         flows.append(geo.flow_from_depth_motion(inv2, motion, K))
         cams.append(K)

@@ -15,7 +15,7 @@ from test_pipeline import cli, client, compose_config, smoke_overrides
 
 from demon_lab.__main__ import check
 from demon_lab.core import geometry as geo
-from demon_lab.core import metrics
+from demon_lab.core import metrics, warping
 from demon_lab.nets import DeMoN
 from demon_lab.nets.chain import depth_motion_net_inputs, flow_net_inputs
 
@@ -35,14 +35,14 @@ def test_compat_warp_is_warp2ds_loop_including_positions_just_left_of_the_image(
     flow[1, 1, 2, 2] = 0.0
     flow[1, 0, 3, 3] = (8 - 1 - 3) / 8  # x0 + 1 = 8: outside
     flow[1, :, 4, 4] = np.nan
-    ours = geo.warp2d(torch.from_numpy(image), torch.from_numpy(flow)).numpy()
+    ours = warping.warp2d(torch.from_numpy(image), torch.from_numpy(flow)).numpy()
     theirs = ref.warp2d(image, flow)
     np.testing.assert_allclose(ours, theirs, rtol=0, atol=1e-6)
     # x = -0.4 in rows 1-4 (y0 + 1 < H): weights 1.4 and -0.4 on pixels 0 and 1 (an extrapolation),
     # where demon_lab's default warp gives 0
     a = np.float32(-0.4)
     np.testing.assert_allclose(ours[0, :, 1:5, 0], (1 - a) * image[0, :, 1:5, 0] + a * image[0, :, 1:5, 1], atol=1e-6)
-    default = geo.warp_image(torch.from_numpy(image), torch.from_numpy(flow)).numpy()
+    default = warping.warp_image(torch.from_numpy(image), torch.from_numpy(flow)).numpy()
     assert np.all(default[0, :, :, 0] == 0) and np.all(ours[0, :, 5, 0] == 0)
     assert np.all(ours[1, :, 4, 4] == 0) and np.all(ours[1, :, 3, 3] == 0) and np.all(ours[1, :, 2, 2] != 0)
 
@@ -60,7 +60,7 @@ def test_compat_geometry_is_demons_kernels():
     flow = (rng.standard_normal((1, 2, 12, 16)) * 0.2).astype(np.float32)
     flow[0, :, 0, :4] = -0.5 / 16  # positions in (-1, 0)
     flow[0, 0, 1, 1] = np.nan
-    assert np.array_equal(geo.warp2d(torch.from_numpy(image), torch.from_numpy(flow)).numpy(),
+    assert np.array_equal(warping.warp2d(torch.from_numpy(image), torch.from_numpy(flow)).numpy(),
                           ref.warp2d(image, flow))
     inv = (1 / rng.uniform(1, 5, (1, 1, 12, 16))).astype(np.float32)
     inv[0, 0, 3, 3] = 0

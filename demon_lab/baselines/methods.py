@@ -45,6 +45,7 @@ from demon_lab.baselines.twoview import (
     view1_pixels,
 )
 from demon_lab.core import geometry as geo
+from demon_lab.core import warping
 
 METHODS = ("base_ff", "base_sift", "base_5pt", "base_mat_f", "base_oracle")
 
@@ -217,7 +218,7 @@ def plane_sweep(image1: torch.Tensor, image2: torch.Tensor, intrinsics: torch.Te
         n = len(chunk)
         inv = chunk.view(n, 1, 1, 1).expand(n, 1, h, w)
         flow = geo.flow_from_depth_motion(inv, m.expand(n, 6), k.expand(n, 4), k2.expand(n, 4)).float()
-        warped = geo.warp_image(image2[None].expand(n, -1, -1, -1).float(), flow)
+        warped = warping.warp_image(image2[None].expand(n, -1, -1, -1).float(), flow)
         inside = (warped != 0).any(1, keepdim=True)
         diff = (warped - image1[None].float()).abs().mean(1, keepdim=True)
         diff = torch.where(inside, diff, torch.ones_like(diff))

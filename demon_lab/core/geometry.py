@@ -24,10 +24,8 @@ Shape errors raise ``ValueError`` naming the argument and the expected shape.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
 
 import torch
-import torch.nn.functional as F
 
 from demon_lab.core.execution import float32
 
@@ -40,7 +38,7 @@ Tensor = torch.Tensor
 # ----------------------------------------------------------------------------- argument checks
 
 
-def _check_map(name: str, x: Tensor, channels: int) -> None:
+def check_map(name: str, x: Tensor, channels: int) -> None:
     if not isinstance(x, torch.Tensor):
         raise ValueError(f"{name}: expected a torch.Tensor of shape (B, {channels}, H, W), "
                          f"got {type(x).__name__}")
@@ -160,7 +158,7 @@ def matrix_to_angle_axis(R: Tensor) -> Tensor:
 # ----------------------------------------------------------------------------- projection
 
 
-def _normalised_grid(height: int, width: int, like: Tensor) -> tuple[Tensor, Tensor]:
+def normalised_grid(height: int, width: int, like: Tensor) -> tuple[Tensor, Tensor]:
     """Normalised pixel-centre coordinates u (1, 1, W) and v (1, H, 1)."""
     u = (torch.arange(width, dtype=like.dtype, device=like.device) + 0.5) / width
     v = (torch.arange(height, dtype=like.dtype, device=like.device) + 0.5) / height
@@ -179,7 +177,7 @@ def valid_depth(inv_depth: Tensor) -> Tensor:
 
 def _rays(height: int, width: int, intrinsics: Tensor) -> Tensor:
     """Back-projected pixel-centre rays K^-1 (u, v, 1): (B, 3, H, W), z component 1."""
-    u, v = _normalised_grid(height, width, intrinsics)
+    u, v = normalised_grid(height, width, intrinsics)
     fx, fy, cx, cy = _intrinsics_maps(intrinsics)
     x = ((u - cx) / fx).expand(-1, height, width)
     y = ((v - cy) / fy).expand(-1, height, width)
@@ -195,7 +193,7 @@ def _project(
     ``xi * z2`` (> 0 iff the point is in front of camera 2) and the validity mask, all (B, H, W).
     Works on inverse depth directly: X2 / z = R K^-1 p + xi t, so points at infinity stay finite.
     """
-    _check_map("inv_depth", inv_depth, 1)
+    check_map("inv_depth", inv_depth, 1)
     batch, _, height, width = inv_depth.shape
     _check_vectors("motion", motion, 6, batch)
     _check_intrinsics("intrinsics", intrinsics, batch)
@@ -236,7 +234,7 @@ def flow_from_depth_motion(
         camera 2 are not treated specially (their projection is still returned).
     """
     u2, v2, _, valid = _project(inv_depth, motion, intrinsics, intrinsics2)
-    u, v = _normalised_grid(inv_depth.shape[2], inv_depth.shape[3], inv_depth)
+    u, v = normalised_grid(inv_depth.shape[2], inv_depth.shape[3], inv_depth)
     flow = torch.stack([u2 - u, v2 - v], dim=1)
     return torch.where(valid.unsqueeze(1), flow, torch.full_like(flow, math.nan))
 
@@ -274,7 +272,7 @@ def triangulation_angle(inv_depth: Tensor, motion: Tensor, intrinsics: Tensor) -
     Returns:
         (B, 1, H, W) degrees.
     """
-    _check_map("inv_depth", inv_depth, 1)
+    check_map("inv_depth", inv_depth, 1)
     batch, _, height, width = inv_depth.shape
     _check_vectors("motion", motion, 6, batch)
     _check_intrinsics("intrinsics", intrinsics, batch)
@@ -331,7 +329,7 @@ def depth_from_flow_motion(
         (B, 1, H, W) inverse depth ``1/Z``; 0 where the point is not triangulable (non-finite
         flow or solution, Z <= 0, a degenerate system such as zero translation).
     """
-    _check_map("flow", flow, 2)
+    check_map("flow", flow, 2)
     batch, _, height, width = flow.shape
     _check_vectors("motion", motion, 6, batch)
     _check_intrinsics("intrinsics", intrinsics, batch)
@@ -341,7 +339,7 @@ def depth_from_flow_motion(
 
     finite = torch.isfinite(flow).all(1)
     flow = torch.where(finite.unsqueeze(1), flow, torch.zeros_like(flow))
-    u1, v1 = _normalised_grid(height, width, flow)
+    u1, v1 = normalised_grid(height, width, flow)
     fx, fy, cx, cy = _intrinsics_maps(intrinsics)
     du1, dv1 = u1 - cx, v1 - cy  # (B, 1, W), (B, H, 1): view-1 terms are separable
     du2, dv2 = du1 + flow[:, 0], dv1 + flow[:, 1]  # (B, H, W)
@@ -379,95 +377,6 @@ def depth_from_flow_motion(
     return inv.unsqueeze(1).to(dtype)
 
 
-# ----------------------------------------------------------------------------- warping
-
-
-def _check_warp_inputs(image: Tensor, flow: Tensor) -> tuple[int, int, int, int]:
-    """A (B, C, H, W) image and a (B, 2, H, W) flow of its size; returns B, C, H, W."""
-    if not isinstance(image, torch.Tensor) or image.dim() != 4:
-        raise ValueError(f"image: expected shape (B, C, H, W), "
-                         f"got {tuple(getattr(image, 'shape', ()))}")
-    _check_map("flow", flow, 2)
-    batch, channels, height, width = image.shape
-    if flow.shape[0] != batch or flow.shape[2:] != image.shape[2:]:
-        raise ValueError(f"flow: expected shape ({batch}, 2, {height}, {width}) to match image, "
-                         f"got {tuple(flow.shape)}")
-    return batch, channels, height, width
-
-
-@float32
-def warp_image(image: Tensor, flow: Tensor) -> Tensor:
-    """Backward-warp image 2 into view 1 with bilinear interpolation (DeMoN's ``warp2d``).
-
-    ``out(x, y) = image(x + W fx(x, y), y + H fy(x, y))`` in pixel indices. The output is 0 unless
-    all four bilinear neighbours lie inside the image (no blending with the border); NaN flow
-    gives 0. Since images live in [-0.5, 0.5], 0 is mid grey.
-
-    One deliberate difference from DeMoN's kernel (:func:`warp2d`, used under
-    ``model.compat=demon_original``): it truncates sample positions toward zero, so for
-    -1 < p < 0 it extrapolates linearly from pixels 0 and 1; here the neighbours are
-    ``floor(p)``, ``floor(p) + 1`` and such samples are outside (0), which is what the
-    all-four-neighbours rule means. The two agree everywhere else.
-
-    Args:
-        image: (B, C, H, W) image of view 2.
-        flow: (B, 2, H, W) normalised flow from view 1 to view 2.
-
-    Returns:
-        (B, C, H, W) image 2 seen from view 1. Differentiable in ``image`` and ``flow``.
-    """
-    _, _, height, width = _check_warp_inputs(image, flow)
-    # Pixel index p = x + W flow has its 4 neighbours inside iff 0 <= p <= W - 2 after floor,
-    # i.e. -x <= W flow < W - 1 - x (likewise for y); NaN compares False.
-    xs = torch.arange(width, dtype=flow.dtype, device=flow.device)
-    ys = torch.arange(height, dtype=flow.dtype, device=flow.device).view(height, 1)
-    px, py = width * flow[:, 0], height * flow[:, 1]
-    inside = (px >= -xs) & (px < (width - 1) - xs) & (py >= -ys) & (py < (height - 1) - ys)
-    # Samples outside (and NaN) are moved far out of the image, where grid_sample gives 0.
-    flow = torch.where(inside.unsqueeze(1), flow, torch.full_like(flow[:1, :1, :1, :1], -4.0))
-    # grid_sample's align_corners=False grid is 2 u - 1 in normalised coordinates u.
-    u, v = _normalised_grid(height, width, flow)
-    base = torch.stack(torch.broadcast_tensors(2 * u - 1, 2 * v - 1), dim=-1)  # (1, H, W, 2)
-    grid = torch.addcmul(base, flow.permute(0, 2, 3, 1), flow.new_tensor(2.0))
-    return F.grid_sample(image, grid.to(image.dtype), mode="bilinear", padding_mode="zeros",
-                         align_corners=False)
-
-
-@float32
-def warp2d(image: Tensor, flow: Tensor) -> Tensor:
-    """DeMoN's ``warp2d`` exactly (lmbspecialops' `src/warp2d.cc`, as DeMoN's graph calls it:
-    ``normalized=True, border_mode='value'``, border value 0); ``model.compat=demon_original``.
-
-    The sample position ``p = x + W fx`` (likewise y) is truncated toward zero, ``x0 = trunc(p)``,
-    with weights ``a = p - x0``; the sample is valid only when ``x0 >= 0``, ``x0 + 1 < W``,
-    ``y0 >= 0`` and ``y0 + 1 < H``, and 0 otherwise (NaN flow: 0). For ``-1 < p < 0`` this takes
-    pixels 0 and 1 with a negative weight, i.e. extrapolates; :func:`warp_image` (demon_lab's
-    default) gives 0 there (docs/reference.md §11 lists the differences between the two modes).
-
-    Args and returns: as :func:`warp_image`.
-    """
-    batch, channels, height, width = _check_warp_inputs(image, flow)
-    flow = flow.to(image.dtype)
-    xs = torch.arange(width, dtype=image.dtype, device=image.device).view(1, 1, width)
-    ys = torch.arange(height, dtype=image.dtype, device=image.device).view(1, height, 1)
-    px, py = xs + flow[:, 0] * width, ys + flow[:, 1] * height  # the kernel's p1 + v, v scaled first
-    x0, y0 = torch.trunc(px), torch.trunc(py)
-    a, b = px - x0, py - y0
-    valid = (x0 >= 0) & (x0 + 1 < width) & (y0 >= 0) & (y0 + 1 < height)  # False for NaN
-    zero = torch.zeros_like(x0)
-    ix, iy = torch.where(valid, x0, zero).long(), torch.where(valid, y0, zero).long()
-    flat = image.reshape(batch, channels, height * width)
-
-    def corner(dy: int, dx: int) -> Tensor:
-        index = ((iy + dy) * width + ix + dx).clamp(max=height * width - 1).view(batch, 1, -1)
-        return flat.gather(2, index.expand(-1, channels, -1)).view(batch, channels, height, width)
-
-    a, b = a.unsqueeze(1), b.unsqueeze(1)
-    out = ((1 - a) * (1 - b) * corner(0, 0) + a * (1 - b) * corner(0, 1)
-           + (1 - a) * b * corner(1, 0) + a * b * corner(1, 1))
-    return torch.where(valid.unsqueeze(1), out, torch.zeros_like(out))
-
-
 # ----------------------------------------------------------------------------- normals
 
 
@@ -489,7 +398,7 @@ def normals_from_depth(inv_depth: Tensor, intrinsics: Tensor) -> Tensor:
         (B, 3, H, W) unit normals in camera-1 coordinates; NaN at border pixels and wherever
         the pixel or a 4-neighbour is invalid (or the normal is undefined).
     """
-    _check_map("inv_depth", inv_depth, 1)
+    check_map("inv_depth", inv_depth, 1)
     batch, _, height, width = inv_depth.shape
     _check_intrinsics("intrinsics", intrinsics, batch)
     intrinsics = intrinsics.to(inv_depth.dtype)
@@ -522,110 +431,3 @@ def _unit(n: Tensor) -> Tensor:
     """Normalise along dim 1; zero vectors stay zero (they are rejected by the caller)."""
     norm2 = (n * n).sum(1, keepdim=True)
     return n * torch.rsqrt(torch.where(norm2 > 0, norm2, torch.ones_like(norm2)))
-
-
-# ----------------------------------------------------------------------------- loss helpers
-
-
-@float32
-def scale_invariant_gradients(
-    x: Tensor, spacings: Sequence[int] = (1, 2, 4, 8, 16), eps: float = 1e-3
-) -> Tensor:
-    """DeMoN's scale-invariant gradients of every channel at several spacings
-    (lmbspecialops' ``scale_invariant_gradient``; docs/reference.md §3).
-
-    ``g_x^h(i, j) = (f(i, j+h) - f(i, j)) / (|f(i, j+h)| + |f(i, j)| + eps)`` and likewise
-    ``g_y^h`` along rows; a term whose neighbour is outside the image is 0. NaN propagates.
-    DeMoN uses ``eps = 1e-3`` for ground truth and predicted flow, ``1e-2`` for predicted depth.
-
-    Args:
-        x: (B, C, H, W) any map (inverse depth, flow, confidence).
-        spacings: the spacings h.
-
-    Returns:
-        (B, C, 2 * len(spacings), H, W) with order [gx^h1, gy^h1, gx^h2, gy^h2, ...].
-    """
-    if not isinstance(x, torch.Tensor) or x.dim() != 4:
-        raise ValueError(f"x: expected shape (B, C, H, W), got {tuple(getattr(x, 'shape', ()))}")
-    height, width = x.shape[2:]
-    terms = []
-    for h in spacings:
-        if h < 1:
-            raise ValueError(f"spacings: expected positive integers, got {h}")
-        gx = torch.zeros_like(x)
-        gy = torch.zeros_like(x)
-        if h < width:
-            a, b = x[..., :, h:], x[..., :, :-h]
-            gx[..., :, :-h] = (a - b) / (a.abs() + b.abs() + eps)
-        if h < height:
-            a, b = x[..., h:, :], x[..., :-h, :]
-            gy[..., :-h, :] = (a - b) / (a.abs() + b.abs() + eps)
-        terms += [gx, gy]
-    return torch.stack(terms, dim=2)
-
-
-@float32
-def median_downsample(x: Tensor) -> Tensor:
-    """Halve the resolution with 3x3 medians (DeMoN's ``median3x3_downsample``).
-
-    Output size ``ceil(H/2) x ceil(W/2)``; ``out(i, j)`` is the median of the 3x3 neighbourhood
-    centred at input ``(2i, 2j)``, borders clamped. NaN follows DeMoN's kernel, a partial
-    selection sort with ``>`` comparisons over the window read row by row, in which NaNs never
-    move: the output is NaN iff the centre is NaN; otherwise it is the m-th smallest of the
-    window's non-NaN values, m = the number of non-NaN values among the first four (top row and
-    left neighbour). Without NaNs this is the plain median.
-
-    Args:
-        x: (B, C, H, W), floating point.
-
-    Returns:
-        (B, C, ceil(H/2), ceil(W/2)).
-    """
-    if not isinstance(x, torch.Tensor) or x.dim() != 4:
-        raise ValueError(f"x: expected shape (B, C, H, W), got {tuple(getattr(x, 'shape', ()))}")
-    h, w = (x.shape[2] + 1) // 2, (x.shape[3] + 1) // 2
-    padded = F.pad(x, (1, 1, 1, 1), mode="replicate")
-    window = [padded[:, :, dy:dy + 2 * h:2, dx:dx + 2 * w:2] for dy in range(3) for dx in range(3)]
-    nan = [torch.isnan(v) for v in window]
-    rank = sum((~n).to(torch.uint8) for n in nan[:4])
-    # NaN as +inf sorts last, as torch.sort puts NaN; with the centre valid the window has at least
-    # rank + 1 valid values, so the rank-th smallest is a valid one (the same even with real infs).
-    v = [torch.where(n, torch.inf, t) for n, t in zip(nan, window)]
-    for i, j in MEDIAN9_NETWORK:
-        v[i], v[j] = torch.minimum(v[i], v[j]), torch.maximum(v[i], v[j])
-    median = v[4]
-    for k in range(4):
-        median = torch.where(rank == k, v[k], median)
-    return torch.where(nan[4], window[4], median)
-
-
-MEDIAN9_NETWORK = ((0, 1), (3, 4), (6, 7), (1, 2), (4, 5), (7, 8), (0, 1), (3, 4), (6, 7), (0, 3), (3, 6), (0, 3),
-                   (1, 4), (4, 7), (1, 4), (2, 5), (5, 8), (2, 5), (1, 3), (5, 7), (2, 6), (4, 6), (2, 4), (2, 3),
-                   (5, 6))
-"""A 25-comparator sorting network for 9 values (it sorts all 512 inputs of 0s and 1s, hence every
-input: tests/test_geometry.py): the 3x3 windows sorted by 50 element-wise min/max ops rather than by
-``Tensor.sort`` over a window dimension, the slower of the two on the cpu scale's batches (the speed-up:
-docs/cpu_scale.md, "Time and memory")."""
-
-
-@float32
-def inverse_depth_pyramid(inv_depth: Tensor, levels: int = 5) -> list[Tensor]:
-    """Ground-truth pyramid by recursive median downsampling (DeMoN's
-    ``recursive_median_downsample`` in `python/depthmotionnet/v2/helpers.py`; docs/reference.md §3-§4).
-
-    Invalid pixels (0, negative, inf) are first turned into NaN so they do not enter the medians.
-
-    Args:
-        inv_depth: (B, 1, H, W) inverse depth at level 0.
-        levels: number of halvings.
-
-    Returns:
-        ``[level 0, level 1, ..., level levels]``; at 256x192 level 2 is 64x48, level 5 is 8x6.
-    """
-    _check_map("inv_depth", inv_depth, 1)
-    level = torch.where(valid_depth(inv_depth), inv_depth, torch.full_like(inv_depth, math.nan))
-    pyramid = [level]
-    for _ in range(levels):
-        level = median_downsample(level)
-        pyramid.append(level)
-    return pyramid

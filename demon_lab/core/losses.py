@@ -18,6 +18,7 @@ from collections.abc import Mapping
 import torch
 
 from demon_lab.core import geometry as geo
+from demon_lab.core import loss_maps
 from demon_lab.core.execution import float32
 
 EPS = 1e-5
@@ -57,7 +58,8 @@ def pointwise_l2(pred: torch.Tensor, gt: torch.Tensor, eps: float = EPS) -> torc
 def sig_loss(pred: torch.Tensor, gt: torch.Tensor, eps_pred: float = 1e-3, eps_gt: float = 1e-3) -> torch.Tensor:
     """Point-wise loss between scale-invariant gradient images (spacings 1, 2, 4, 8, 16), one
     Euclidean norm over the 10 gradient channels per pixel; channels of a map are separate items."""
-    sp, sg = geo.scale_invariant_gradients(pred, eps=eps_pred), geo.scale_invariant_gradients(gt, eps=eps_gt)
+    sp = loss_maps.scale_invariant_gradients(pred, eps=eps_pred)
+    sg = loss_maps.scale_invariant_gradients(gt, eps=eps_gt)
     return pointwise_l2(sp.flatten(0, 1), sg.flatten(0, 1))
 
 
@@ -164,9 +166,9 @@ class GroundTruth(Mapping):
 
     def _level(self, k: int) -> torch.Tensor:
         if not self._pyramid:
-            self._pyramid = geo.inverse_depth_pyramid(self._batch["inv_depth"], levels=0)
+            self._pyramid = loss_maps.inverse_depth_pyramid(self._batch["inv_depth"], levels=0)
         while len(self._pyramid) <= k:
-            self._pyramid.append(geo.median_downsample(self._pyramid[-1]))
+            self._pyramid.append(loss_maps.median_downsample(self._pyramid[-1]))
         return self._pyramid[k]
 
     def _compute(self, key: str) -> torch.Tensor:

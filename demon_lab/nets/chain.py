@@ -23,6 +23,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from demon_lab.core import geometry as geo
+from demon_lab.core import loss_maps, warping
 from demon_lab.core.execution import float32
 from demon_lab.nets.blocks import check_correlation, check_size, check_variant
 from demon_lab.nets.depth_motion_net import DepthMotion, DepthMotionNet
@@ -87,7 +88,7 @@ class GroundTruthInputs:
 
 @float32
 def ground_truth_inputs(gt: dict, intrinsics: torch.Tensor) -> GroundTruthInputs:
-    inv2 = geo.inverse_depth_pyramid(gt["inv_depth"], levels=2)[2]
+    inv2 = loss_maps.inverse_depth_pyramid(gt["inv_depth"], levels=2)[2]
     return GroundTruthInputs(
         flow=geo.flow_from_depth_motion(inv2, gt["motion"], intrinsics),
         inv_depth=inv2, normals=geo.normals_from_depth(inv2, intrinsics), motion=gt["motion"])
@@ -105,7 +106,7 @@ def flow_net_inputs(image2_2: torch.Tensor, inv_depth: torch.Tensor, normals: to
         flow = geo.flow_from_depth_motion(inv_depth, motion, intrinsics)
         keep = (flow.norm(dim=1, keepdim=True) < 1)  # False for NaN
         flow = torch.where(keep, flow, torch.zeros_like(flow))
-        warped = (geo.warp2d if original else geo.warp_image)(image2_2, flow)
+        warped = (warping.warp2d if original else warping.warp_image)(image2_2, flow)
         if original:
             return torch.cat([warped, flow, inv_depth, normals], 1)
         return torch.cat([warped, flow, finite(inv_depth), finite(normals)], 1)
@@ -125,12 +126,12 @@ def depth_motion_net_inputs(image2_2: torch.Tensor, flow: torch.Tensor, conf: to
     the flow and confidence as they are."""
     with torch.no_grad():
         if compat == "demon_original":
-            parts = [geo.warp2d(image2_2, flow), flow, conf]
+            parts = [warping.warp2d(image2_2, flow), flow, conf]
             if prev_motion is not None:
                 parts.append(geo.depth_from_flow_motion(flow, prev_motion, intrinsics))
             return torch.cat(parts, 1)
         flow = finite(flow)
-        parts = [geo.warp_image(image2_2, flow), flow, finite(conf)]
+        parts = [warping.warp_image(image2_2, flow), flow, finite(conf)]
         if prev_motion is not None:
             parts.append(finite(geo.depth_from_flow_motion(flow, prev_motion, intrinsics, clip=(0.0, 50.0))))
         return torch.cat(parts, 1)

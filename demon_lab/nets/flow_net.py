@@ -8,7 +8,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from demon_lab.core.geometry import warp_image
+from demon_lab.core.warping import warp_image
 from demon_lab.nets.blocks import (
     Conv,
     ConvPair,

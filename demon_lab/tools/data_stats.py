@@ -61,6 +61,7 @@ def pair_statistics(sample: dict) -> dict[str, float]:
     import torch
 
     from demon_lab.core import geometry as geo
+    from demon_lab.core import warping
     from demon_lab.core.metrics import flow_epe
 
     inv = sample["inv_depth"][None].double()
@@ -68,7 +69,7 @@ def pair_statistics(sample: dict) -> dict[str, float]:
     tri = geo.triangulation_angle(inv, motion, sample["intrinsics"][None].double()).numpy()
     valid = sample["valid"].numpy()
     flow = torch.nan_to_num(sample["flow"], nan=0.0)[None]
-    warped = geo.warp_image(sample["image2"][None], flow)[0]
+    warped = warping.warp_image(sample["image2"][None], flow)[0]
     seen = sample["visible"][0] & (warped.abs().sum(0) > 0)  # 0: a neighbour fell outside image 2
     photometric = (warped - sample["image1"]).abs().mean(0)[seen].mean().item() * 255
     _, inv2 = geo.reproject(inv, motion, sample["intrinsics"][None].double(),

@@ -46,24 +46,7 @@ from pathlib import Path
 import torch
 
 from demon_lab.core import execution
-
-STAGES = ("flow1", "dm1", "flow2", "dm2", "iterative", "refine")
-
-
-@dataclass(frozen=True)
-class Dims:
-    size: tuple[int, int]
-    width: float
-    batch: int
-    new: int  # iterative stage: new samples per step (the rest of the batch is queued)
-    scale: str  # the job's scale profile of parts 5 and 6 ("paper"/"cpu", or "smoke" in a dry run)
-    loop_steps: int
-    workers: int
-    seconds: float  # timed seconds per rate
-
-
-PAPER = Dims((192, 256), 1.0, 32, 8, "paper", 150, 8, 1.5)
-DRY = Dims((64, 64), 0.0625, 2, 1, "smoke", 4, 0, 0.2)
+from demon_lab.tools.step_rate import DRY, PAPER, STAGES, Dims, batch_of, step_rate
 
 
 @dataclass
@@ -94,86 +77,6 @@ class Check:
     def sync(self) -> None:
         if self.device.type == "cuda":
             torch.cuda.synchronize(self.device)
-
-
-_SAMPLES: dict[tuple[int, int], list[dict]] = {}
-
-
-def _batch(dims: Dims, n: int, device: torch.device) -> dict[str, torch.Tensor]:
-    """``n`` training samples at ``dims.size`` (8 distinct rendered pairs, rendered once, repeated)."""
-    from torch.utils.data import default_collate
-
-    from demon_lab.data import synthetic
-    from demon_lab.data.sample import normalize_translation
-
-    if dims.size not in _SAMPLES:
-        presets = sorted(synthetic.PRESETS)
-        rendered = [normalize_translation(synthetic.render_pair(presets[i % 3], 30_000 + i, dims.size))
-                    for i in range(8)]
-        _SAMPLES[dims.size] = [{k: v for k, v in s.items() if k not in ("meta", "id")} for s in rendered]
-    distinct = _SAMPLES[dims.size]
-    batch = default_collate([distinct[i % len(distinct)] for i in range(n)])
-    return {k: v.to(device) for k, v in batch.items() if isinstance(v, torch.Tensor)}
-
-
-def _stage(kind: str, chain, dims: Dims):
-    from demon_lab.core.losses import preset
-    from demon_lab.pipeline.stages.modules import DepthMotionStage, FlowStage, IterativeStage, RefineStage
-
-    w = dict(weights=preset("released_code"), steps=1000, lr=1e-4)
-    if kind in ("flow1", "flow2"):
-        return FlowStage(chain, net=kind, **w)
-    if kind in ("dm1", "dm2"):
-        return DepthMotionStage(chain, net=kind, **w)
-    if kind == "iterative":
-        return IterativeStage(chain, queue_size=dims.batch - dims.new, **w)
-    return RefineStage(chain, iterations=3, **w)
-
-
-def step_rate(check: Check, dims: Dims, kind: str, precision: str, channels_last: bool = False,
-              compile: bool = False) -> dict[str, float]:
-    """Steps/s of one stage's bare training step, its peak memory and its first steps' time."""
-    from demon_lab.core import losses
-    from demon_lab.nets.chain import DeMoN
-
-    torch.manual_seed(0)
-    chain = execution.prepare_nets(DeMoN("v1", dims.width, dims.size).to(check.device), channels_last, compile)
-    module = _stage(kind, chain, dims)
-    # Outside a Trainer global_step stays 0, where every sig weight's ramp is 0 and its term is skipped;
-    # DeMoN's stages have them on for all but their first steps: time the step with them.
-    module.ramp = lambda *args, **kwargs: 1.0
-    module.freeze_upstream()
-    module.train()
-    optimizer = torch.optim.Adam([p for p in module.parameters() if p.requires_grad], lr=1e-4, eps=1e-6,
-                                 foreach=True)
-    batch = execution.channels_last_batch(_batch(dims, dims.new if kind == "iterative" else dims.batch,
-                                                 check.device), channels_last)
-
-    def step():
-        with execution.autocast(check.device, precision):
-            loss, _ = module.stage_loss(batch, losses.ground_truth(batch))
-        optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        optimizer.step()
-
-    with execution.peak_memory(check.device) as memory:
-        start = time.perf_counter()
-        for _ in range(4):  # warm-up (the iterative stage's queue fills; compilation happens here)
-            step()
-        check.sync()
-        first = time.perf_counter() - start
-        start = time.perf_counter()
-        for _ in range(3):
-            step()
-        check.sync()
-        per_step = (time.perf_counter() - start) / 3
-        n = max(5, int(dims.seconds / max(per_step, 1e-6)))
-        start = time.perf_counter()
-        for _ in range(n):
-            step()
-        check.sync()
-        rate = n / (time.perf_counter() - start)
-    return {"steps_per_second": rate, "first_steps_s": first, **memory}
 
 
 def _release(device: torch.device) -> None:
@@ -219,7 +122,7 @@ def part_inference(check: Check, dims: Dims) -> None:
         for precision, channels_last in (("32-true", False), ("bf16-mixed", True)):
             chain = execution.prepare_nets(DeMoN("v1", dims.width, dims.size).to(check.device).eval(), channels_last)
             # the batch in the layout run_chain gives it: the timed loop is the chain's alone
-            b = execution.channels_last_batch(_batch(dims, batch_size, check.device), channels_last)
+            b = execution.channels_last_batch(batch_of(dims, batch_size, check.device), channels_last)
             outputs = run_chain(chain, itertools.repeat(b), 3, precision=precision, channels_last=channels_last)
             with execution.peak_memory(check.device) as memory:
                 next(outputs)
@@ -245,7 +148,7 @@ def part_steps(check: Check, dims: Dims, rates: dict[tuple, float]) -> None:
                 check.add("3 train steps", label, "skipped: budget")
                 continue
             try:
-                r = step_rate(check, dims, kind, precision, channels_last)
+                r = step_rate(check.device, dims, kind, precision, channels_last)
                 rates[(kind, precision, channels_last)] = r["steps_per_second"]
                 check.add("3 train steps", label, _fmt_rate(r))
             except Exception as e:
@@ -263,7 +166,7 @@ def part_steps(check: Check, dims: Dims, rates: dict[tuple, float]) -> None:
         saved = torch.backends.cudnn.benchmark
         torch.backends.cudnn.benchmark = True
         try:
-            r = step_rate(check, dims, "flow1", "bf16-mixed", True)
+            r = step_rate(check.device, dims, "flow1", "bf16-mixed", True)
             check.add("3 train steps", "flow1, bf16-mixed, channels-last, cudnn.benchmark", _fmt_rate(r),
                       "the job trains with cudnn.benchmark off (deterministic kernels where they exist)")
         finally:
@@ -415,7 +318,7 @@ def part_compile(check: Check, dims: Dims, rates: dict[tuple, float]) -> None:
 
 def compile_worker(kind: str) -> None:
     device = torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    r = step_rate(Check(float("inf"), False, device), PAPER, kind, "bf16-mixed", True, compile=True)
+    r = step_rate(device, PAPER, kind, "bf16-mixed", True, compile=True)
     print(json.dumps(r), flush=True)
 
 
