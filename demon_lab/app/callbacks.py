@@ -1,11 +1,12 @@
 """Hydra callbacks: one MLflow parent run per multirun, the study's report on it, the sweep's verdict.
 
-``on_multirun_start`` creates the tracking store and the experiment once, before any job starts
-(parallel jobs racing to create a fresh SQLite database is a known MLflow failure), and the parent
-run; with ``tracking=local_server`` it starts the sweep's one MLflow server. ``on_job_start`` hands
-the parent run id and the server's address to the job in the job's own process
-(``demon_lab.app.job.PARENT_RUN`` and ``SWEEP_SERVER``; with the joblib and SLURM launchers this
-callback travels there pickled, both with it), and the job tags itself with ``mlflow.parentRunId``.
+``on_sweep_checked`` (called by demon_lab's sweeper once every job of the sweep is checked) creates
+the tracking store and the experiment once, before any job starts (parallel jobs racing to create a
+fresh SQLite database is a known MLflow failure), and the parent run; with ``tracking=local_server``
+it starts the sweep's one MLflow server. ``on_job_start`` hands the parent run id and the server's
+address to the job in the job's own process (``demon_lab.app.job.PARENT_RUN`` and ``SWEEP_SERVER``;
+with the joblib and SLURM launchers this callback travels there pickled, both with it), and the job
+tags itself with ``mlflow.parentRunId``.
 The same sweep command issued again (after a kill, a failure or a cluster pre-emption) continues
 the same parent run, so its children are every job of the sweep: the finished ones (skipped this
 time) and the ones run now.
@@ -49,9 +50,14 @@ class MultirunTracking(Callback):
         return {**self.__dict__, "tracker": None, "server": None}
 
     def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
+        self.failed, self.jobs, self.parent = [], [], None
+
+    def on_sweep_checked(self, config: DictConfig, **kwargs: Any) -> None:
+        """Once the sweeper has checked every job (:mod:`demon_lab.app.sweeper`), before the first
+        launch: the local server, if the sweep asks for one, and the sweep's parent run (a sweep
+        issued again continues its run)."""
         from demon_lab.pipeline.tracking import TAG, Tracker
 
-        self.failed, self.jobs = [], []
         if config.tracking.get("server"):
             from demon_lab.pipeline.tracking import LocalServer, TrackingError
 

@@ -1,9 +1,7 @@
-"""demon_lab's sweeper as a Hydra plugin: Hydra instantiates a sweeper only from the ``hydra_plugins``
-namespace (``conf/hydra/sweeper/demon_lab.yaml`` names this class). What it does is
-:mod:`demon_lab.app.sweeper`.
-
-Hydra finds plugins by scanning the namespace, which an editable install (``pip install -e .``) hides
-from it; ``python -m demon_lab`` therefore registers the class itself (``demon_lab.__main__``)."""
+"""demon_lab's sweeper as a Hydra plugin: Hydra finds plugins in the ``hydra_plugins`` namespace and
+instantiates a sweeper only from there (``conf/hydra/sweeper/demon_lab.yaml`` names this class). What
+it does is :mod:`demon_lab.app.sweeper`. (An editable install carries this file as a file, where
+Hydra's scan sees it: ``build_backend/demon_lab_build.py``.)"""
 
 import demon_lab.app.sweeper as _sweeper
 
