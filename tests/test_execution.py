@@ -359,3 +359,24 @@ def test_a_cluster_launch_leaves_the_device_checks_to_the_job(tmp_path):
     assert check(["-m", *args, "hydra/launcher=slurm"]) is None  # checked by the job, where it runs
     with pytest.raises(ConfigError, match="needs a CUDA device"):
         validate(compose_config(args))
+
+
+@pytest.mark.parametrize("env, devices, rank", [
+    ({}, 1, 0),
+    ({"TORCHELASTIC_RUN_ID": "job", "RANK": "3", "LOCAL_RANK": "1", "GROUP_RANK": "1"}, 2, 3),  # torchrun
+    ({"SLURM_NTASKS": "4", "SLURM_NTASKS_PER_NODE": "2", "SLURM_PROCID": "2", "SLURM_JOB_NAME": "train"}, 2, 2),  # srun
+    ({"LOCAL_RANK": "1", "NODE_RANK": "1"}, 4, 5),  # a process Lightning's launcher started: node x devices + local
+    # an interactive SLURM shell is not a SLURM launch (Lightning's rule): the local launcher's rank
+    ({"SLURM_NTASKS": "1", "SLURM_PROCID": "0", "SLURM_JOB_NAME": "bash", "LOCAL_RANK": "1"}, 2, 1),
+])
+def test_the_rank_is_the_one_lightnings_cluster_environments_give(env, devices, rank, monkeypatch):
+    from types import SimpleNamespace
+
+    for var in ("TORCHELASTIC_RUN_ID", "RANK", "LOCAL_RANK", "GROUP_RANK", "NODE_RANK", "SLURM_NTASKS", "SLURM_PROCID",
+                "SLURM_NTASKS_PER_NODE",
+                "SLURM_JOB_NAME"):
+        monkeypatch.delenv(var, raising=False)
+    for var, value in env.items():
+        monkeypatch.setenv(var, value)
+    cfg = SimpleNamespace(trainer=SimpleNamespace(devices=devices, num_nodes=2))
+    assert execution.global_rank(cfg) == rank

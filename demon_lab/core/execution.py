@@ -232,18 +232,17 @@ def world_size(cfg: Any) -> int:
 
 
 def global_rank(cfg: Any) -> int:
-    """This process's rank in a multi-process (DDP) job: torchrun's RANK, SLURM's task id under
-    srun/submitit, or, in a process that Lightning's launcher started for a local multi-device run,
-    NODE_RANK x devices + LOCAL_RANK; 0 for a single process."""
-    import os
+    """This process's rank in a multi-process (DDP) job, as Lightning's cluster environments read it:
+    torchrun's (``TorchElasticEnvironment``), SLURM's under srun or submitit (``SLURMEnvironment``),
+    or, in a process that Lightning's launcher started for a local multi-device run
+    (``LightningEnvironment``), node rank x devices + local rank; 0 for a single process."""
+    from lightning.fabric.plugins.environments import LightningEnvironment, SLURMEnvironment, TorchElasticEnvironment
 
-    for var in ("RANK", "SLURM_PROCID"):
-        if os.environ.get(var, "").isdigit():
-            return int(os.environ[var])
-    if os.environ.get("LOCAL_RANK", "").isdigit():
-        node = os.environ.get("NODE_RANK", "0")
-        return (int(node) if node.isdigit() else 0) * int(cfg.trainer.devices) + int(os.environ["LOCAL_RANK"])
-    return 0
+    for environment in (TorchElasticEnvironment, SLURMEnvironment):
+        if environment.detect():
+            return environment().global_rank()
+    local = LightningEnvironment()
+    return local.node_rank() * int(cfg.trainer.devices) + local.local_rank()
 
 
 def processes_launched_outside() -> bool:
