@@ -192,3 +192,39 @@ def test_the_diagnosis_block_reads_each_seeds_passes(tmp_path):
     table = doc_tables.render(tmp_path, "diagnose", "x", "setA").splitlines()
     assert table[:4] == ["| seed | pass 0 EPE | pass 1: prior EPE / EPE |", "|---|---:|---|",
                          "| 0 | 0.100 | 0.250 / 0.200 |", "| 1 | 1.100 | 0.250 / 0.200 |"]
+
+
+def test_the_configuration_reference_is_current_and_gives_every_key_a_meaning():
+    """docs/config.md is what ``python -m demon_lab.config_docs`` writes from conf/ and the schema now;
+    every key of the default job and every option of each stage kind has its row, with a meaning."""
+    from hydra import compose, initialize_config_dir
+    from omegaconf import OmegaConf
+
+    from demon_lab.pipeline.schema import STAGE_SPECS, options_of
+    from demon_lab.resources import CONF
+    from demon_lab.tools import config_docs
+
+    page = (ROOT / "docs" / "config.md").read_text()
+    assert config_docs.main(["--check", "--out", str(ROOT / "docs" / "config.md")]) == 0
+    rows = {line.split(" | ")[0].strip("| `"): line for line in page.splitlines() if line.startswith("| `")}
+    with initialize_config_dir(str(CONF), version_base="1.3"):
+        cfg = OmegaConf.to_container(compose("config"), resolve=False)
+    stack = [("", cfg)]
+    keys = []
+    while stack:
+        prefix, node = stack.pop()
+        for k, v in node.items():
+            dotted = f"{prefix}{k}"
+            if isinstance(v, dict) and dotted != "schedule.stages" and dotted != "scale":
+                stack.append((dotted + ".", v))
+            elif dotted not in ("schedule.stages", "scale"):
+                keys.append(dotted)
+    assert len(keys) > 70
+    for key in keys:
+        assert key in rows, key
+        assert not rows[key].rstrip().endswith("|  |"), f"{key}: no meaning"
+    stage_rows = [line for line in page.splitlines() if line.startswith("| `") and line.count(" | ") == 4
+                  and line.split(" | ")[0].strip("| `") in STAGE_SPECS]
+    assert {(r.split(" | ")[0].strip("| `"), r.split(" | ")[1].strip("`")) for r in stage_rows} == \
+        {(kind, o) for kind in STAGE_SPECS for o in options_of(kind) if o != "kind"}
+    assert all(not r.rstrip().endswith("|  |") for r in stage_rows)

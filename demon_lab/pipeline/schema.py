@@ -66,7 +66,9 @@ class StageSpec:
     kind: ClassVar[str]
     name: str
     steps: int
+    """Training steps (0: the stage trains nothing; its nets stay as they are)."""
     lr: float
+    """The base learning rate (``schedule.lr_schedule`` decays it)."""
     warmup_steps: int = 0
     """Linear learning-rate warm-up (0: none, as DeMoN)."""
     batch_size: int | None = None
@@ -103,6 +105,7 @@ class FlowStageSpec(StageSpec):
 
     kind: ClassVar[str] = "flow"
     net: str = "flow1"
+    """The net the stage trains: ``flow1`` (bootstrap) or ``flow2`` (iterative)."""
     sig_start: float = 0.0
     """The fraction of the stage before its sig terms ramp in (0: DeMoN's; 1: never)."""
     level5_fade: float = 1 / 3
@@ -129,6 +132,7 @@ class DepthMotionStageSpec(StageSpec):
 
     kind: ClassVar[str] = "depth_motion"
     net: str = "dm1"
+    """The net the stage trains: ``dm1`` (bootstrap) or ``dm2`` (iterative)."""
     gt_flow_warmup: float = 0.0
     """The first fraction of the stage fed ground-truth flow (0: none, as DeMoN)."""
 
@@ -145,6 +149,7 @@ class IterativeStageSpec(StageSpec):
     queue_size: int = 24
     """Queued samples per step, beside the batch's new ones (DeMoN: 24)."""
     sig_start: float = 0.0
+    """The fraction of the stage before its flow net's sig terms ramp in (0: DeMoN's; 1: never)."""
 
     def module_options(self) -> dict[str, Any]:
         return {**super().module_options(), "queue_size": self.queue_size, "sig_start": self.sig_start}
@@ -159,6 +164,7 @@ class RefineStageSpec(StageSpec):
 
     kind: ClassVar[str] = "refine"
     iterations: int = 3
+    """The passes of the frozen chain whose depth the refinement net refines (DeMoN: 3)."""
 
     def module_options(self) -> dict[str, Any]:
         return {**super().module_options(), "iterations": self.iterations}
