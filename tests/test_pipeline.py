@@ -408,17 +408,28 @@ def test_checking_a_configuration_imports_neither_lightning_nor_mlflow():
     assert result.stdout.strip().splitlines()[-1] == "[]", result.stdout
 
 
-def test_the_stage_kinds_and_rate_schedules_a_config_may_name_are_the_implemented_ones():
-    from demon_lab.pipeline.schema import STAGE_KIND_NAMES, STAGE_SPECS
-    from demon_lab.pipeline.stages.base import learning_rate
-    from demon_lab.pipeline.stages.modules import STAGE_KINDS
+def test_each_stage_kind_carries_its_module_nets_oracles_and_scores_and_the_rate_schedules_are_implemented():
+    from demon_lab.core.losses import WEIGHT_KEYS
+    from demon_lab.nets.chain import ORACLES
+    from demon_lab.pipeline.schema import STAGE_SPECS
+    from demon_lab.pipeline.stages import modules
+    from demon_lab.pipeline.stages.base import StageModule, learning_rate
     from demon_lab.pipeline.stages.schedule import LR_SCHEDULES
 
-    assert STAGE_KIND_NAMES == tuple(STAGE_KINDS)
-    for kind, spec in STAGE_SPECS.items():  # each spec's options are its module's arguments
-        options = spec(name=kind, steps=10, lr=1e-3).module_options()
-        assert set(options) <= set(inspect.signature(STAGE_KINDS[kind]).parameters) | {"steps", "lr", "warmup_steps",
-                                                                                       "oracle"}, kind
+    nets = {"flow1", "dm1", "flow2", "dm2", "refine_net"}
+    for kind, spec in STAGE_SPECS.items():  # its module takes every option it sets
+        module = getattr(modules, spec.module)
+        assert issubclass(module, StageModule), kind
+        stage = spec(name=kind, steps=10, lr=1e-3)
+        assert set(stage.module_options()) <= set(inspect.signature(module).parameters) | {
+            "steps", "lr", "warmup_steps", "oracle"}, kind
+        assert set(stage.trained_nets()) <= nets and set(stage.weight_keys()) <= set(WEIGHT_KEYS), kind
+        assert set(spec.oracles) - {None} <= set(ORACLES), kind
+    flow2 = STAGE_SPECS["flow"](name="flow2", steps=1, lr=1.0, net="flow2", sig_start=1.0)
+    assert flow2.trained_nets() == ("flow2",) and flow2.validation_passes() == 1
+    assert flow2.weight_keys() == ("flow", "flow_conf")  # its sig terms never start: not read, not in its key
+    assert STAGE_SPECS["iterative"](name="iterative", steps=1, lr=1.0).trained_nets() == ("flow2", "dm2")
+    assert STAGE_SPECS["refine"](name="refine", steps=1, lr=1.0, iterations=2).validation_passes() == 2
     for schedule in LR_SCHEDULES:  # each is implemented: the base rate at step 0, decayed by mid-stage
         assert learning_rate(0, 1000, 1e-3, schedule) == 1e-3
         assert 0 < learning_rate(500, 1000, 1e-3, schedule) < learning_rate(399, 1000, 1e-3, schedule) <= 1e-3
@@ -582,14 +593,16 @@ def test_train_stage_hands_the_probe_options_to_their_stages(tmp_path, monkeypat
             raise Built
         return make
 
-    monkeypatch.setattr(training, "STAGE_KINDS", {k: capture(k) for k in ("flow", "depth_motion", "iterative",
-                                                                         "refine")})
+    from demon_lab.pipeline.schema import STAGE_SPECS
+    from demon_lab.pipeline.stages import modules
+    from demon_lab.pipeline.stages.modules import DepthMotionStage, FlowStage
+
+    for kind, spec in STAGE_SPECS.items():
+        monkeypatch.setattr(modules, spec.module, capture(kind))
     with initialize_config_dir(CONF, version_base="1.3"):
         cfg = compose("config", ["scale=smoke", f"cache_dir={tmp_path}", "+schedule.stages.flow1.level5_fade=0.75",
                                  "+schedule.stages.dm1.gt_flow_warmup=0.4"])
         plain = compose("config", ["scale=smoke", f"cache_dir={tmp_path}"])
-    from demon_lab.pipeline.stages.modules import DepthMotionStage, FlowStage
-
     default = lambda module, key: inspect.signature(module).parameters[key].default  # noqa: E731
     demon = {"flow": {"level5_fade": default(FlowStage, "level5_fade")},
              "depth_motion": {"gt_flow_warmup": default(DepthMotionStage, "gt_flow_warmup")}}
@@ -952,9 +965,9 @@ def test_keep_best_keeps_the_nets_of_the_lowest_held_apart_score_across_a_resume
             keep.on_train_batch_end(SimpleNamespace(global_step=step, max_steps=max_steps), module, None, None, 0)
 
     path = tmp_path / "best.pt"
-    keep = KeepBest(Scorer(), "depth_motion", 2, path, ["dm1"])
+    keep = KeepBest(Scorer(), "tran_deg", 2, path, ["dm1"])
     steps(keep, 1, 4, max_steps=8)
-    resumed = KeepBest(Scorer(), "depth_motion", 2, path, ["dm1"])
+    resumed = KeepBest(Scorer(), "tran_deg", 2, path, ["dm1"])
     assert (resumed.best_step, resumed.best) == (4, 30.0)
     steps(resumed, 5, 6, max_steps=8)
     assert resumed.best_step == 4

@@ -27,19 +27,9 @@ WEIGHT_KEYS = ("flow", "flow_conf", "flow_sig", "flow_conf_sig", "depth", "depth
 FLOW_WEIGHTS = ("flow", "flow_conf", "flow_sig", "flow_conf_sig")
 DEPTH_MOTION_WEIGHTS = ("depth", "depth_sig", "normals", "rotation", "translation")
 REFINE_WEIGHTS = ("refine_depth", "refine_depth_sig", "refine_normals")
-STAGE_WEIGHTS = {"flow": FLOW_WEIGHTS, "depth_motion": DEPTH_MOTION_WEIGHTS,
-                 "iterative": FLOW_WEIGHTS + DEPTH_MOTION_WEIGHTS, "refine": REFINE_WEIGHTS}
-"""The weights each stage kind's loss can read."""
 FLOW_SIG_WEIGHTS = ("flow_sig", "flow_conf_sig")
 
 
-def stage_weight_keys(kind: str, sig_start: float = 0.0) -> tuple[str, ...]:
-    """The weights a stage of ``kind`` reads (and so the ones in its stage key): a flow or
-    iterative stage whose flow sig terms never start (``sig_start`` >= 1) does not read theirs."""
-    keys = STAGE_WEIGHTS[kind]
-    if kind in ("flow", "iterative") and sig_start >= 1:
-        keys = tuple(k for k in keys if k not in FLOW_SIG_WEIGHTS)
-    return keys
 Terms = dict[str, torch.Tensor]
 
 

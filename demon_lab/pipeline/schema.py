@@ -9,7 +9,10 @@ stage through these frozen dataclasses rather than through the raw config:
 - one :class:`StageSpec` subclass per stage kind (``schedule.stages.NAME``, told apart by its
   ``kind``): the options that every stage of a kind has come from ``conf/schedule/``; the options a
   stage may leave out (the departures and probes of the ``cpu`` scale) have their defaults here,
-  and an option its kind does not take is an error.
+  and an option its kind does not take is an error. The class is everything a kind is: its options,
+  its training module (``module``, a class of :mod:`demon_lab.pipeline.stages.modules`), the nets it
+  trains, the ground-truth inputs it may train on, the loss weights it reads and its held-apart
+  scores. A new kind is a subclass here, its module, and the YAML that schedules it.
 
 A stage key hashes the stage's raw config node, not its spec, so an option's default written here
 does not enter the key of a stage that leaves the option out (:mod:`demon_lab.pipeline.identity`).
@@ -23,7 +26,7 @@ from typing import Any, ClassVar
 
 from omegaconf import DictConfig, OmegaConf
 
-from demon_lab.core.losses import stage_weight_keys
+from demon_lab.core.losses import DEPTH_MOTION_WEIGHTS, FLOW_SIG_WEIGHTS, FLOW_WEIGHTS, REFINE_WEIGHTS
 from demon_lab.pipeline.config import ConfigError
 
 PRIOR_KEYS = ("flow1_prior", "dm1_prior", "flow2_prior", "dm2_prior")
@@ -64,6 +67,17 @@ class StageSpec:
     """``schedule.stages.NAME``: what every kind of stage takes."""
 
     kind: ClassVar[str]
+    module: ClassVar[str]
+    """The stage's LightningModule: a class of :mod:`demon_lab.pipeline.stages.modules`, by name (the
+    schema is read where Lightning is not imported)."""
+    oracles: ClassVar[tuple[str | None, ...]] = (None,)
+    """The ground-truth inputs (``oracle``) the kind may train on; None: the chain's own."""
+    loss_weights: ClassVar[tuple[str, ...]]
+    """The loss weights (``loss.*``) the kind's loss reads."""
+    scores_motion: ClassVar[bool] = False
+    """Its held-apart scores include the motion and the depth of its pass."""
+    best_metric: ClassVar[str]
+    """The held-apart score ``keep_best`` keeps the best nets by (lower is better)."""
     name: str
     steps: int
     """Training steps (0: the stage trains nothing; its nets stay as they are)."""
@@ -85,13 +99,20 @@ class StageSpec:
     trained nets of the best score (0: the last step's nets, as DeMoN)."""
 
     def module_options(self) -> dict[str, Any]:
-        """The keyword arguments of the stage's module (:data:`demon_lab.pipeline.stages.modules.STAGE_KINDS`)
-        that the stage's options set."""
+        """The keyword arguments of the stage's module (its kind's ``module``) that its options set."""
         return {"steps": self.steps, "lr": self.lr, "warmup_steps": self.warmup_steps}
 
     def weight_keys(self) -> tuple[str, ...]:
-        """The loss weights the stage reads (:func:`demon_lab.core.losses.stage_weight_keys`)."""
-        return stage_weight_keys(self.kind)
+        """The loss weights the stage reads (and so the ones in its stage key)."""
+        return self.loss_weights
+
+    def trained_nets(self) -> tuple[str, ...]:
+        """The chain's nets (attributes of :class:`demon_lab.nets.DeMoN`) the stage trains and stores."""
+        return (self.net,)
+
+    def validation_passes(self) -> int:
+        """The iterative passes the chain runs when the stage's nets are scored on the held-apart sets."""
+        return int(self.net in ("flow2", "dm2"))
 
     def curriculum(self) -> dict[str, Any]:
         """The keyword arguments of the stage's training data (:func:`demon_lab.data.datamodule.build_datamodule`)
@@ -104,6 +125,10 @@ class FlowStageSpec(StageSpec):
     """A flow net's stage (``flow1``, or ``flow2`` on the frozen bootstrap net)."""
 
     kind: ClassVar[str] = "flow"
+    module: ClassVar[str] = "FlowStage"
+    oracles: ClassVar[tuple[str | None, ...]] = (None, "depth_motion")
+    loss_weights: ClassVar[tuple[str, ...]] = FLOW_WEIGHTS
+    best_metric: ClassVar[str] = "epe"
     net: str = "flow1"
     """The net the stage trains: ``flow1`` (bootstrap) or ``flow2`` (iterative)."""
     sig_start: float = 0.0
@@ -120,7 +145,7 @@ class FlowStageSpec(StageSpec):
                 "level5_fade": self.level5_fade}
 
     def weight_keys(self) -> tuple[str, ...]:
-        return stage_weight_keys(self.kind, self.sig_start)
+        return _without_unstarted_sig(self.loss_weights, self.sig_start)
 
     def curriculum(self) -> dict[str, Any]:
         return {**super().curriculum(), "layers_first": self.layers_first}
@@ -131,6 +156,11 @@ class DepthMotionStageSpec(StageSpec):
     """A depth-motion net's stage (``dm1`` on the frozen ``flow1``, ``dm2`` on the frozen ``flow2``)."""
 
     kind: ClassVar[str] = "depth_motion"
+    module: ClassVar[str] = "DepthMotionStage"
+    oracles: ClassVar[tuple[str | None, ...]] = (None, "flow")
+    loss_weights: ClassVar[tuple[str, ...]] = DEPTH_MOTION_WEIGHTS
+    scores_motion: ClassVar[bool] = True
+    best_metric: ClassVar[str] = "tran_deg"  # the motion the depth's scale and the next pass rest on
     net: str = "dm1"
     """The net the stage trains: ``dm1`` (bootstrap) or ``dm2`` (iterative)."""
     gt_flow_warmup: float = 0.0
@@ -146,6 +176,10 @@ class IterativeStageSpec(StageSpec):
     """``flow2`` and ``dm2`` trained together on DeMoN's queue of previous predictions."""
 
     kind: ClassVar[str] = "iterative"
+    module: ClassVar[str] = "IterativeStage"
+    loss_weights: ClassVar[tuple[str, ...]] = FLOW_WEIGHTS + DEPTH_MOTION_WEIGHTS
+    scores_motion: ClassVar[bool] = True
+    best_metric: ClassVar[str] = "tran_deg"
     queue_size: int = 24
     """Queued samples per step, beside the batch's new ones (DeMoN: 24)."""
     sig_start: float = 0.0
@@ -155,7 +189,13 @@ class IterativeStageSpec(StageSpec):
         return {**super().module_options(), "queue_size": self.queue_size, "sig_start": self.sig_start}
 
     def weight_keys(self) -> tuple[str, ...]:
-        return stage_weight_keys(self.kind, self.sig_start)
+        return _without_unstarted_sig(self.loss_weights, self.sig_start)
+
+    def trained_nets(self) -> tuple[str, ...]:
+        return ("flow2", "dm2")
+
+    def validation_passes(self) -> int:
+        return 1
 
 
 @dataclass(frozen=True)
@@ -163,11 +203,26 @@ class RefineStageSpec(StageSpec):
     """The refinement net on the frozen chain's depth after ``iterations`` passes."""
 
     kind: ClassVar[str] = "refine"
+    module: ClassVar[str] = "RefineStage"
+    loss_weights: ClassVar[tuple[str, ...]] = REFINE_WEIGHTS
+    best_metric: ClassVar[str] = "l1_inv"  # of the refined depth
     iterations: int = 3
     """The passes of the frozen chain whose depth the refinement net refines (DeMoN: 3)."""
 
     def module_options(self) -> dict[str, Any]:
         return {**super().module_options(), "iterations": self.iterations}
+
+    def trained_nets(self) -> tuple[str, ...]:
+        return ("refine_net",)
+
+    def validation_passes(self) -> int:
+        return self.iterations
+
+
+def _without_unstarted_sig(weights: tuple[str, ...], sig_start: float) -> tuple[str, ...]:
+    """A flow net's weights without its sig terms' where they never start (``sig_start`` >= 1): a
+    stage that never reads them shares its key with the stages of other sig weights."""
+    return tuple(k for k in weights if k not in FLOW_SIG_WEIGHTS) if sig_start >= 1 else weights
 
 
 STAGE_SPECS: dict[str, type[StageSpec]] = {s.kind: s for s in (FlowStageSpec, DepthMotionStageSpec,

@@ -20,11 +20,8 @@ from demon_lab.baselines.methods import METHODS as BASELINES
 from demon_lab.core.losses import check_weights
 from demon_lab.nets.chain import ORACLES
 from demon_lab.pipeline.config import ConfigError
-from demon_lab.pipeline.schema import PRIOR_KEYS, STAGE_KIND_NAMES, ModelSpec, stage_spec
+from demon_lab.pipeline.schema import PRIOR_KEYS, STAGE_KIND_NAMES, STAGE_SPECS, ModelSpec, stage_spec
 from demon_lab.pipeline.stages.schedule import LR_SCHEDULES
-
-STAGE_ORACLES = {"flow": (None, "depth_motion"), "depth_motion": (None, "flow"), "iterative": (None,),
-                 "refine": (None,)}
 
 
 def _int(key: str, value: Any, minimum: int | None = None) -> int:
@@ -149,12 +146,11 @@ def _flow1_only(name: str, spec: DictConfig, option: str, what: str) -> None:
 def _kept_nets(cfg: DictConfig, stage: str, before: list[str]) -> None:
     """A stage of 0 steps trains nothing: its nets stay as they are at that point of the schedule,
     so each must come from an earlier stage that trains it or from ``model.weights``."""
-    from demon_lab.pipeline.stages.schedule import TRAINED_NETS
     from demon_lab.pipeline.weights import read_nets
 
-    earlier = {n for s in before if cfg.schedule.stages[s].steps > 0 for n in TRAINED_NETS[s]}
+    earlier = {n for s in before if cfg.schedule.stages[s].steps > 0 for n in stage_spec(cfg, s).trained_nets()}
     held = set(read_nets(cfg.model.weights, mmap=True)) if cfg.model.weights else set()
-    lacking = [n for n in TRAINED_NETS[stage] if n not in earlier | held]
+    lacking = [n for n in stage_spec(cfg, stage).trained_nets() if n not in earlier | held]
     if lacking:
         source = f"{cfg.model.weights} has no" if cfg.model.weights else "model.weights is not set for"
         raise ConfigError(f"schedule.stages.{stage}.steps: 0 trains nothing and keeps the stage's nets as they "
@@ -276,7 +272,7 @@ def validate(cfg: DictConfig, here: bool = True) -> None:
         if spec.steps == 0 and name in trained:
             _kept_nets(cfg, name, trained[: trained.index(name)])
         _positive(f"schedule.stages.{name}.lr", spec.lr)
-        _choice(f"schedule.stages.{name}.oracle", spec.get("oracle"), STAGE_ORACLES[spec.kind])
+        _choice(f"schedule.stages.{name}.oracle", spec.get("oracle"), STAGE_SPECS[spec.kind].oracles)
         if "warmup_steps" in spec:
             _int(f"schedule.stages.{name}.warmup_steps", spec.warmup_steps, 0)
         if spec.kind in ("flow", "iterative") and "sig_start" in spec:

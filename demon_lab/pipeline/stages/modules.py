@@ -200,7 +200,3 @@ class RefineStage(StageModule):
         for _ in range(self.iterations):
             p = self.chain.iterate(pair, image2_2, K, p)
         return (p.inv_depth,)
-
-
-STAGE_KINDS = {"flow": FlowStage, "depth_motion": DepthMotionStage, "iterative": IterativeStage,
-               "refine": RefineStage}

@@ -22,11 +22,6 @@ from demon_lab.pipeline.stages.cache import CheckpointError, StageDir
 LR_SCHEDULES = ("released", "supplementary")
 """``schedule.lr_schedule``: :func:`demon_lab.pipeline.stages.base.learning_rate` implements both."""
 
-TRAINED_NETS = {"flow1": ["flow1"], "dm1": ["dm1"], "flow2": ["flow2"], "dm2": ["dm2"],
-                "iterative": ["flow2", "dm2"], "refine": ["refine_net"]}
-"""The chain's nets (attributes of :class:`demon_lab.nets.DeMoN`) each stage trains and stores."""
-
-
 def scheduled_stages(cfg: DictConfig) -> list[str]:
     """The stages a job needs: the schedule's, up to ``schedule.until``."""
     names = list(cfg.schedule.stages)

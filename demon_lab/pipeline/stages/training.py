@@ -27,9 +27,9 @@ from demon_lab.core.execution import (
 )
 from demon_lab.nets.chain import DeMoN
 from demon_lab.pipeline.schema import FlowStageSpec, stage_spec
+from demon_lab.pipeline.stages import modules
 from demon_lab.pipeline.stages.cache import StageDir, atomic_checkpoint_io, load_checkpoint
-from demon_lab.pipeline.stages.modules import STAGE_KINDS
-from demon_lab.pipeline.stages.schedule import TRAINED_NETS, build_chain, load_stage, stage_dirs
+from demon_lab.pipeline.stages.schedule import build_chain, load_stage, stage_dirs
 
 log = logging.getLogger(__name__)
 
@@ -63,11 +63,11 @@ def train_stage(cfg: DictConfig, chain: DeMoN, stage: StageDir, logger: L.pytorc
     spec = stage_spec(cfg, stage.name)
     if spec.steps == 0:  # trains nothing: the nets as they are (from model.weights or an earlier stage)
         if global_rank(cfg) == 0:
-            stage.save({net: plain_state(getattr(chain, net)) for net in TRAINED_NETS[stage.name]})
+            stage.save({net: plain_state(getattr(chain, net)) for net in spec.trained_nets()})
         log.info("stage %s: 0 steps: keeps %s as they are (from model.weights or an earlier stage)", stage.name,
-                 ", ".join(TRAINED_NETS[stage.name]))
+                 ", ".join(spec.trained_nets()))
         return {"seconds": 0.0, "steps_per_second": 0.0, "resumed_from_step": 0}
-    module = STAGE_KINDS[spec.kind](chain, weights=OmegaConf.to_container(cfg.loss, resolve=True),
+    module = getattr(modules, spec.module)(chain, weights=OmegaConf.to_container(cfg.loss, resolve=True),
                                      lr_schedule=cfg.schedule.lr_schedule,
                                      weight_decay=float(cfg.schedule.weight_decay),
                                      channels_last=bool(cfg.model.channels_last),
@@ -93,12 +93,11 @@ def train_stage(cfg: DictConfig, chain: DeMoN, stage: StageDir, logger: L.pytorc
         from demon_lab.pipeline.config import instantiate
         from demon_lab.pipeline.stages.validation import KeepBest, StageValidation
 
-        passes = spec.iterations if spec.kind == "refine" else int(stage.name in ("flow2", "dm2", "iterative"))
-        scorer = StageValidation(stage.name, [instantiate(e) for e in cfg.data.val],
-                                 int(cfg.tracking.val_every_n_steps) if logger is not None else 0, passes)
+        scorer = StageValidation(spec, [instantiate(e) for e in cfg.data.val],
+                                 int(cfg.tracking.val_every_n_steps) if logger is not None else 0)
         callbacks.append(scorer)
         if spec.keep_best:
-            keep = KeepBest(scorer, spec.kind, spec.keep_best, stage.path / "best.pt", TRAINED_NETS[stage.name])
+            keep = KeepBest(scorer, spec.best_metric, spec.keep_best, stage.path / "best.pt", spec.trained_nets())
             callbacks.append(keep)
     trainer = _trainer(cfg, spec.steps, logger=logger if logger is not None else False, callbacks=callbacks,
                        enable_progress_bar=progress)
@@ -117,7 +116,7 @@ def train_stage(cfg: DictConfig, chain: DeMoN, stage: StageDir, logger: L.pytorc
                  kept.get("keep_best_step", spec.steps), spec.steps, keep.metric,
                  kept.get(f"keep_best_{keep.metric}", float("nan")), kept["keep_best_seconds"])
     if global_rank(cfg) == 0:
-        stage.save({net: plain_state(getattr(chain, net)) for net in TRAINED_NETS[stage.name]})
+        stage.save({net: plain_state(getattr(chain, net)) for net in spec.trained_nets()})
     steps_done = spec.steps - start_step
     figures = {"seconds": seconds, "steps_per_second": steps_done / max(seconds, 1e-9), "resumed_from_step": start_step,
                **{f"final/{k}": v for k, v in module.last_terms.items()}, **kept}
@@ -160,9 +159,9 @@ def screen_restarts(cfg: DictConfig, chain: DeMoN, stage: StageDir, module: L.Li
     spec = stage_spec(cfg, stage.name)
     starts, steps = spec.restarts
     batch = int(spec.batch_size or cfg.data.batch_size)
-    (net_name,) = TRAINED_NETS[stage.name]
+    (net_name,) = spec.trained_nets()
     net = getattr(chain, net_name)
-    scorer = StageValidation(stage.name, [instantiate(e) for e in cfg.data.val], 0, 0)
+    scorer = StageValidation(spec, [instantiate(e) for e in cfg.data.val], 0, iterations=0)
     scores = []
     for i in range(starts):
         if i > 0:  # (start 0: the net as the chain holds it)

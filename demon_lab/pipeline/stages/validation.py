@@ -6,7 +6,7 @@ synthetic_sun3d validation scenes in the default mix) and the stage's MLflow run
   normalised units, against the ground truth the loss uses; ``val/<set>/zero_flow_epe`` is the
   error of predicting no flow, once);
 - ``val/<set>/rot_deg``, ``val/<set>/tran_deg``: DeMoN's motion errors of that pass, when the stage
-  trains a depth-motion net (dm1, dm2, iterative);
+  trains a depth-motion net (its kind's ``scores_motion``: dm1, dm2, iterative);
 - ``val/<set>/l1_inv``: L1 of the inverse depth at level 2 (refine: the refined depth at level 0).
 
 The same scores choose a stage's kept nets with the stage option ``keep_best`` (:class:`KeepBest`).
@@ -30,8 +30,7 @@ import torch
 
 from demon_lab.core import losses, metrics
 from demon_lab.pipeline.evaluate import run_chain
-
-MOTION_STAGES = ("dm1", "dm2", "iterative")
+from demon_lab.pipeline.schema import StageSpec
 
 
 def _mean(values: list[float]) -> float:
@@ -42,8 +41,12 @@ def _mean(values: list[float]) -> float:
 class StageValidation(L.Callback):
     """Logs the held-apart metrics of one stage (see the module docstring)."""
 
-    def __init__(self, stage: str, datasets: Sequence, every_n_steps: int, iterations: int, batch_size: int = 8):
-        self.stage, self.datasets, self.iterations = stage, list(datasets), int(iterations)
+    def __init__(self, spec: StageSpec, datasets: Sequence, every_n_steps: int, iterations: int | None = None,
+                 batch_size: int = 8):
+        """``spec``: the stage scored (its kind says what: :class:`demon_lab.pipeline.schema.StageSpec`);
+        ``iterations``: the passes the chain runs (None: the stage's own, ``spec.validation_passes()``)."""
+        self.spec, self.datasets = spec, list(datasets)
+        self.iterations = spec.validation_passes() if iterations is None else int(iterations)
         self.every, self.batch_size = int(every_n_steps), int(batch_size)
         self._zero_logged = False
         self._last: tuple[int, dict[str, float]] | None = None
@@ -94,7 +97,7 @@ class StageValidation(L.Callback):
         rows: dict[str, list[float]] = {"epe": [], "zero_flow_epe": [], "rot_deg": [], "tran_deg": [], "l1_inv": []}
         loader = torch.utils.data.DataLoader(dataset, batch_size=self.batch_size, shuffle=False)
         for _, b, out in run_chain(chain, loader, self.iterations, precision=precision, channels_last=channels_last,
-                                   refine=self.stage == "refine"):
+                                   refine=self.spec.kind == "refine"):
             p = out.passes[-1]
             gt = losses.ground_truth(b)
             error = (p.flow - gt["flow2"]).norm(dim=1)
@@ -102,13 +105,13 @@ class StageValidation(L.Callback):
             for i in range(p.flow.shape[0]):
                 rows["epe"].append(float(error[i][torch.isfinite(error[i])].mean()))
                 rows["zero_flow_epe"].append(float(zero[i][torch.isfinite(zero[i])].mean()))
-                if self.stage in MOTION_STAGES:
+                if self.spec.scores_motion:
                     motion = metrics.motion_errors(p.motion[i].cpu(), b["motion"][i].cpu())
                     rows["rot_deg"].append(motion["rot_deg"])
                     rows["tran_deg"].append(motion["tran_deg"])
-            if self.stage == "refine":
+            if self.spec.kind == "refine":
                 depth, target = out.refined, gt["inv_depth0"]
-            elif self.stage in MOTION_STAGES:
+            elif self.spec.scores_motion:
                 depth, target = p.inv_depth, gt["inv_depth2"]
             else:
                 continue
@@ -118,22 +121,18 @@ class StageValidation(L.Callback):
         return {k: _mean(v) for k, v in rows.items() if v}
 
 
-BEST_METRIC = {"flow": "epe", "depth_motion": "tran_deg", "iterative": "tran_deg", "refine": "l1_inv"}
-"""The held-apart score a stage of each kind keeps its best nets by (``keep_best``; lower is better):
-the flow of the pass a flow stage trains, the translation of a depth-motion net (the motion that the
-depth's scale and the next pass rest on), the refined depth of the refinement net."""
-
-
 class KeepBest(L.Callback):
     """The stage option ``keep_best``: every ``every`` steps and at the stage's last, the stage's
-    :data:`BEST_METRIC` averaged over the held-apart sets; the trained nets of the lowest score so far
+    ``metric`` (the stage kind's ``best_metric``: the flow of the pass a flow stage trains, the
+    translation of a depth-motion net, the refined depth of the refinement net; lower is better)
+    averaged over the held-apart sets; the trained nets of the lowest score so far
     are written to ``path`` (with the step and the score, so a resumed stage keeps its best), and
     :meth:`restore` puts them back into the chain when the stage ends. ``seconds`` is what scoring
     and saving the best nets cost this process (the stage logs it: the option's price), the scoring
     counted in full where the held-apart curves scored the same step first."""
 
-    def __init__(self, scorer: StageValidation, kind: str, every: int, path, nets: Sequence[str]):
-        self.scorer, self.metric, self.every = scorer, BEST_METRIC[kind], int(every)
+    def __init__(self, scorer: StageValidation, metric: str, every: int, path, nets: Sequence[str]):
+        self.scorer, self.metric, self.every = scorer, metric, int(every)
         self.path, self.nets, self.seconds = path, list(nets), 0.0
         saved = torch.load(path, weights_only=True) if path.is_file() else None
         self.best_step, self.best = (saved["step"], saved["score"]) if saved else (-1, math.inf)
