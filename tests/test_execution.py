@@ -10,7 +10,6 @@ import math
 import pytest
 import torch
 from conftest import random_scene
-from omegaconf import open_dict
 from test_pipeline import DEMON_DESIGN, client, compose_config, smoke_overrides
 
 from demon_lab.core import execution, loss_maps, losses, warping
@@ -169,13 +168,17 @@ def _keys(cfg) -> tuple[str, list[str]]:
 
 
 def test_precision_keys_stages_and_runs_only_off_its_default_and_layout_or_compile_none(tmp_path):
+    """Precision is left out of the keys at its neutral value, whatever its spelling (the keys every run
+    and stage had before the option existed: GOLDEN pins them), and the memory layout and compilation
+    never enter a key."""
+    from demon_lab.pipeline.identity import NEUTRAL, leave_out_neutral
+
     base = compose_config(smoke_overrides(tmp_path))
-    without = compose_config(smoke_overrides(tmp_path))
-    with open_dict(without):
-        del without["precision"]
-        del without.model["channels_last"]
-        del without.model["compile"]
-    assert _keys(base) == _keys(without)  # the keys every run and stage had before these options existed
+    for spelling in ("32", "32-true"):
+        assert _keys(compose_config(smoke_overrides(tmp_path, f"precision={spelling}"))) == _keys(base)
+    assert NEUTRAL["precision"] == "32-true"
+    assert leave_out_neutral({"precision": 32, "model": {"compat": None, "width": 1.0}, "seed": None}) == \
+        {"model": {"width": 1.0}, "seed": None}  # only the declared options, at their neutral values
     bf16 = _keys(compose_config(smoke_overrides(tmp_path, "precision=bf16-mixed")))
     assert bf16[0] != _keys(base)[0] and all(a != b for a, b in zip(bf16[1], _keys(base)[1]))
     assert _keys(compose_config(smoke_overrides(tmp_path, "precision=bf16"))) == bf16  # one name, one key

@@ -12,6 +12,12 @@ them:
 - sweep key (:func:`sweep_key`): a multirun's experiment and its result-changing overrides; the
   same sweep re-issued continues its MLflow parent run.
 
+One rule keeps the keys of older configs as they were when an option is added: the option declares
+its neutral value in :data:`NEUTRAL` (the value under which a job computes what it computed before
+the option existed), and every key leaves an option at its neutral value out
+(:func:`leave_out_neutral`). A stage option that the shipped schedule does not write needs no entry:
+a stage key hashes the stage's own config node, where an option left unset is absent.
+
 A rendered synthetic data set's cache folder has a key of its own, from the generator
 (:func:`demon_lab.data.synthetic.render_key`), so that the data layer needs nothing above it.
 
@@ -36,6 +42,15 @@ CODE_VERSION = 2
 
 EXECUTION_KEYS = ("channels_last", "compile")
 """Keys of ``model`` that say how the nets run, not what they are (so in :data:`NON_SEMANTIC`)."""
+
+NEUTRAL: dict[str, Any] = {
+    "model.compat": None, "model.weights": None, "model.correlation": None,
+    "model.flow1_prior": None, "model.dm1_prior": None, "model.flow2_prior": None, "model.dm2_prior": None,
+    "precision": "32-true",
+}
+"""The options added after keys were first written, each with its neutral value (precision by its
+normalised name). A new option that every config writes (a key of ``conf/model/demon.yaml``, a
+top-level key) adds its line here; nothing else in the keys changes."""
 
 NON_SEMANTIC = ("tracking", "force", "hydra", "cache_dir", "eval.visualize", "eval.point_clouds", "row",
                 "data.num_workers", "threads", "trainer.reuse_frozen", *(f"model.{k}" for k in EXECUTION_KEYS))
@@ -95,15 +110,24 @@ def _portable(value: Any) -> Any:
     return value
 
 
+def leave_out_neutral(plain: dict[str, Any], prefix: str = "") -> dict[str, Any]:
+    """``plain`` (a config or a part of one, as plain containers, at the dotted ``prefix``) without the
+    :data:`NEUTRAL` options that hold their neutral value, at any depth; precision compared by its
+    normalised name."""
+    out = {}
+    for key, value in plain.items():
+        dotted = prefix + key
+        if dotted in NEUTRAL and (normalize_precision(value) if dotted == "precision" else value) == NEUTRAL[dotted]:
+            continue
+        out[key] = leave_out_neutral(value, dotted + ".") if isinstance(value, dict) else value
+    return out
+
+
 def model_identity(model: dict[str, Any]) -> dict[str, Any]:
-    """A plain ``model`` config with ``weights`` named by the file's content (``sha256:...``), not
-    its path: a moved file keeps its keys, a changed one gets new ones. ``compat``, ``weights``,
-    ``correlation`` and the priors (``flow1_prior``, ``dm1_prior``, ``flow2_prior``, ``dm2_prior``) at their defaults
-    (null) are left out, so the
-    keys of configs without them are those they had before the keys existed; so are
-    :data:`EXECUTION_KEYS`, which never change a key."""
-    optional = ("compat", "weights", "correlation", "flow1_prior", "dm1_prior", "flow2_prior", "dm2_prior")
-    model = {k: v for k, v in model.items() if not (k in optional and v is None) and k not in EXECUTION_KEYS}
+    """A plain ``model`` config as keys hold it: its neutral options left out (:func:`leave_out_neutral`),
+    without :data:`EXECUTION_KEYS` (which never change a key), and ``weights`` named by the file's
+    content (``sha256:...``), not its path: a moved file keeps its keys, a changed one gets new ones."""
+    model = {k: v for k, v in leave_out_neutral(model, "model.").items() if k not in EXECUTION_KEYS}
     if not model.get("weights"):
         return model
     return {**model, "weights": describe(model["weights"])}
@@ -127,11 +151,10 @@ def semantic_config(cfg) -> dict[str, Any]:
         plain["model"] = model_identity(plain["model"])
     if isinstance(plain.get("data"), dict):
         plain["data"] = without_render_cache(plain["data"])
-    precision = normalize_precision(plain.pop("precision", 32))
-    # left out at its default (the keys from before it existed hold) and for the methods that run no net
-    if precision != "32-true" and plain.get("method", "demon") in ("demon", "base_mat_f"):
-        plain["precision"] = precision
-    return _portable(plain)
+    plain["precision"] = normalize_precision(plain["precision"])
+    if plain.get("method") not in ("demon", "base_mat_f"):
+        del plain["precision"]  # the methods that run no net compute the same in any precision
+    return _portable(leave_out_neutral(plain))
 
 
 def run_key(cfg) -> str:

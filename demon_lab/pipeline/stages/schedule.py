@@ -15,7 +15,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from demon_lab.core.execution import normalize_precision, prepare_nets
 from demon_lab.nets.chain import DeMoN
-from demon_lab.pipeline.identity import model_identity, stage_key, without_render_cache
+from demon_lab.pipeline.identity import leave_out_neutral, model_identity, stage_key, without_render_cache
 from demon_lab.pipeline.schema import ModelSpec, stage_spec
 from demon_lab.pipeline.stages.cache import CheckpointError, StageDir
 
@@ -26,10 +26,6 @@ def scheduled_stages(cfg: DictConfig) -> list[str]:
     """The stages a job needs: the schedule's, up to ``schedule.until``."""
     names = list(cfg.schedule.stages)
     return names[: names.index(cfg.schedule.until) + 1]
-
-
-PRECISION_BEFORE = 32
-"""The nets' precision of a config from before ``precision`` existed (its keys still name its stages)."""
 
 
 def describe_stage(cfg: DictConfig, name: str, upstream: dict[str, str]) -> dict[str, Any]:
@@ -52,11 +48,8 @@ def describe_stage(cfg: DictConfig, name: str, upstream: dict[str, str]) -> dict
         **({"keep_best_on": without_render_cache(plain(cfg.data.val))} if spec.keep_best else {}),
         "seed": cfg.seed,
         "upstream": dict(upstream),
-        # the nets' precision when it is not float32 and the stage trains (left out at 32: the keys from
-        # before it existed hold)
-        **({"precision": precision}
-           if (precision := normalize_precision(cfg.get("precision", PRECISION_BEFORE))) != "32-true"
-           and int(spec.steps) > 0 else {}),
+        # the nets' precision where the stage trains (a stage of 0 steps keeps its nets as they are)
+        **leave_out_neutral({"precision": normalize_precision(cfg.precision)} if int(spec.steps) > 0 else {}),
     }
 
 
