@@ -8,9 +8,9 @@ summary as ``n_failed`` and excluded from the means.
 
 from __future__ import annotations
 
+from collections.abc import Callable, Iterator
 from typing import Any
 
-import numpy as np
 import torch
 
 from demon_lab.baselines.methods import (
@@ -23,9 +23,35 @@ from demon_lab.baselines.methods import (
     base_sift,
 )
 from demon_lab.baselines.twoview import BaselineFailure
-from demon_lab.core import metrics
+from demon_lab.core import metrics, scoring
 
-__all__ = ["METHODS", "BaselineConfig", "BaselineFailure", "evaluate_baseline", "summarize_baseline"]
+__all__ = ["METHODS", "BaselineConfig", "BaselineFailure", "evaluate_baseline", "get_method", "summarize_baseline"]
+
+
+def get_method(name: str) -> Callable[..., tuple[dict[str, Any], torch.Tensor | None]]:
+    """The classical method ``name`` as one call: ``predict(pair, sample, cfg, chain, iterations)`` returns
+    its prediction (``inv_depth``, ``motion``) and the flow it read, if any (``base_mat_f``: the chain's,
+    on ``sample``), or raises :class:`BaselineFailure`; ``pair`` is the sample at the resolution the
+    method reads (``sample`` itself by default)."""
+    if name not in PREDICTORS:
+        raise ValueError(f"method: expected one of {METHODS}, got {name!r}")
+    return PREDICTORS[name]
+
+
+def _with_chain_flow(sample, cfg: BaselineConfig, chain, iterations: int):
+    out = chain(sample["image1"][None], sample["image2"][None], sample["intrinsics"][None], iterations=iterations)
+    flow = out.passes[-1].flow[0].cpu()
+    return base_mat_f(sample, cfg, flow), flow
+
+
+PREDICTORS: dict[str, Callable[..., tuple[dict[str, Any], torch.Tensor | None]]] = {
+    "base_ff": lambda pair, sample, cfg, chain, iterations: (base_ff(pair, cfg), None),
+    "base_sift": lambda pair, sample, cfg, chain, iterations: (base_sift(pair, cfg), None),
+    "base_5pt": lambda pair, sample, cfg, chain, iterations: (base_5pt(pair, cfg), None),
+    "base_mat_f": lambda pair, sample, cfg, chain, iterations: _with_chain_flow(sample, cfg, chain, iterations),
+    "base_oracle": lambda pair, sample, cfg, chain, iterations: (base_oracle(pair, cfg), None),
+}
+"""The classical methods by name (:data:`METHODS`), each as :func:`get_method` hands it out."""
 
 
 @torch.no_grad()
@@ -33,58 +59,33 @@ def evaluate_baseline(method: str, dataset, cfg: BaselineConfig, chain=None, ite
                       inputs=None, max_samples: int | None = None,
                       keep: int = 0, histogram: metrics.PixelHistogram | None = None
                       ) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
-    """Per-sample metric rows of ``method`` on ``dataset`` and the first ``keep`` predictions.
+    """Per-sample metric rows of ``method`` on ``dataset`` and the first ``keep`` predictions, scored by
+    :func:`demon_lab.core.scoring.score`.
 
     ``inputs``: the same pairs at the resolution the method reads them at (default ``dataset``;
     ``demon_lab.pipeline.evaluate.baseline_inputs``); every prediction is scored on ``dataset``'s ground truth.
     ``chain`` (a trained DeMoN) is needed by ``base_mat_f``, which reads its flow on ``dataset``'s
     pairs. ``histogram`` collects per-pixel depth errors.
     """
-    if method not in METHODS:
-        raise ValueError(f"method: expected one of {METHODS}, got {method!r}")
+    predict = get_method(method)
     n = len(dataset) if max_samples is None else min(len(dataset), int(max_samples))
-    rows: list[dict[str, Any]] = []
-    kept: list[dict[str, Any]] = []
-    protocol = metrics.protocol(dataset)
     inputs = dataset if inputs is None else inputs
     if len(inputs) != len(dataset):
         raise ValueError(f"inputs: expected the {len(dataset)} pairs of the test set, got {len(inputs)}")
-    for i in range(n):
-        sample = dataset[i]
-        pair = sample if inputs is dataset else inputs[i]
-        truth = metrics.ground_truth(sample, dataset)
-        truth.pop("flow")  # the baselines predict no flow: EPE is not scored
-        flow = None
-        try:
-            if method == "base_ff":
-                pred = base_ff(pair, cfg)
-            elif method == "base_sift":
-                pred = base_sift(pair, cfg)
-            elif method == "base_5pt":
-                pred = base_5pt(pair, cfg)
-            elif method == "base_mat_f":
-                out = chain(sample["image1"][None], sample["image2"][None], sample["intrinsics"][None],
-                            iterations=iterations)
-                flow = out.passes[-1].flow[0].cpu()
-                pred = base_mat_f(sample, cfg, flow)
-            else:
-                pred = base_oracle(pair, cfg)
-        except BaselineFailure as e:
-            rows.append({"id": sample["id"], "it": "baseline", "failed": str(e)})
-            continue
-        scores = metrics.evaluate_sample({"inv_depth": pred["inv_depth"], "motion": pred["motion"]}, truth, **protocol)
-        rows.append({"id": sample["id"], "it": "baseline", "failed": "", **scores})
-        if histogram is not None:
-            histogram.add(metrics.pixel_depth_errors({"inv_depth": pred["inv_depth"]}, truth, **protocol))
-        if len(kept) < keep:
-            kept.append({"id": sample["id"], "image1": sample["image1"], "gt_inv_depth": sample["inv_depth"][0],
-                         "gt_motion": sample["motion"],
-                         "inv_depth": torch.as_tensor(metrics.resize_nearest(  # shown beside image 1
-                             pred["inv_depth"], tuple(sample["inv_depth"].shape[1:])).astype(np.float32)),
-                         "flow": flow if flow is not None else torch.zeros(2, *sample["inv_depth"].shape[1:]),
-                         "normals": torch.zeros(3, *sample["inv_depth"].shape[1:]),
-                         "intrinsics": sample["intrinsics"]})
-    return rows, kept
+
+    def predictions() -> Iterator[scoring.Prediction]:
+        for i in range(n):
+            sample = dataset[i]
+            pair = sample if inputs is dataset else inputs[i]
+            try:
+                pred, flow = predict(pair, sample, cfg, chain, iterations)
+            except BaselineFailure as e:
+                yield scoring.Prediction(sample, {"baseline": str(e)}, "baseline", reports_failures=True)
+                continue
+            yield scoring.Prediction(sample, {"baseline": {"inv_depth": pred["inv_depth"], "motion": pred["motion"]}},
+                                     "baseline", flow=flow, reports_failures=True)
+
+    return scoring.score(dataset, predictions(), keep, histogram)
 
 
 def summarize_baseline(rows: list[dict[str, Any]]) -> dict[str, float]:

@@ -23,7 +23,7 @@ from typing import Any
 import torch
 from torch.utils.data import DataLoader
 
-from demon_lab.core import execution, metrics
+from demon_lab.core import execution, metrics, scoring
 from demon_lab.nets.chain import ChainOutput, DeMoN
 
 log = logging.getLogger(__name__)
@@ -58,41 +58,37 @@ def evaluate_dataset(chain: DeMoN, dataset, iterations: int, oracle: str | None 
                      ) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
     """Per-sample metric rows (one per sample and iteration, ``it`` = 0..N or 'refined'; 'priors': the
     chain's classical priors alone, where it has both bootstrap priors and no oracle feeds it) and the
-    raw predictions of the first ``keep`` samples (for visualisations). ``refined=False`` (the
-    refinement net was not trained) leaves out the refined rows. ``histogram`` collects the
-    per-pixel errors of the final depth (refined, else the last pass). The chain runs as
-    :func:`run_chain` runs it (``precision``, ``channels_last``); the metrics are computed on the
-    host, from the float32 predictions."""
+    raw predictions of the first ``keep`` samples (for visualisations), scored by
+    :func:`demon_lab.core.scoring.score`. ``refined=False`` (the refinement net was not trained) leaves
+    out the refined rows. ``histogram`` collects the per-pixel errors of the final depth (refined, else
+    the last pass). The chain runs as :func:`run_chain` runs it (``precision``, ``channels_last``); the
+    metrics are computed on the host, from the float32 predictions."""
     n = len(dataset) if max_samples is None else min(len(dataset), int(max_samples))
-    subset = torch.utils.data.Subset(dataset, range(n))
-    protocol = metrics.protocol(dataset)
-    rows: list[dict[str, Any]] = []
-    kept: list[dict[str, Any]] = []
-    loader = DataLoader(subset, batch_size=batch_size, shuffle=False)
-    for batch, _, out in run_chain(chain, loader, iterations, oracle, precision, channels_last, refine=refined,
-                                   priors=oracle is None):
+    loader = DataLoader(torch.utils.data.Subset(dataset, range(n)), batch_size=batch_size, shuffle=False)
+    batches = run_chain(chain, loader, iterations, oracle, precision, channels_last, refine=refined,
+                        priors=oracle is None)
+    return scoring.score(dataset, _chain_predictions(batches, refined), keep, histogram)
+
+
+def _chain_predictions(batches, refined: bool) -> Iterator[scoring.Prediction]:
+    """Each pair of :func:`run_chain`'s batches as the chain predicted it: its priors alone (where
+    it has them), every pass, and the refined depth with the last pass's motion and flow."""
+    def predicted(p, i: int, inv_depth=None) -> dict[str, torch.Tensor]:
+        return {"inv_depth": p.inv_depth[i, 0].cpu() if inv_depth is None else inv_depth,
+                "motion": p.motion[i].cpu(), "flow": p.flow[i].cpu()}
+
+    for batch, _, out in batches:
         for i in range(batch["image1"].shape[0]):
-            truth = metrics.ground_truth({k: v[i] for k, v in batch.items() if isinstance(v, torch.Tensor)}, dataset)
+            sample = {**{k: v[i] for k, v in batch.items() if isinstance(v, torch.Tensor)}, "id": batch["id"][i]}
+            groups: dict[Any, dict[str, torch.Tensor]] = {}
             if out.priors is not None:  # the classical priors alone: what the nets add is measured against it
-                p = out.priors
-                pred = {"inv_depth": p.inv_depth[i, 0].cpu(), "motion": p.motion[i].cpu(), "flow": p.flow[i].cpu()}
-                rows.append({"id": batch["id"][i], "it": "priors", **metrics.evaluate_sample(pred, truth, **protocol)})
-            for k, p in enumerate(out.passes):
-                pred = {"inv_depth": p.inv_depth[i, 0].cpu(), "motion": p.motion[i].cpu(), "flow": p.flow[i].cpu()}
-                rows.append({"id": batch["id"][i], "it": k, **metrics.evaluate_sample(pred, truth, **protocol)})
+                groups["priors"] = predicted(out.priors, i)
+            groups.update({k: predicted(p, i) for k, p in enumerate(out.passes)})
             last = out.passes[-1]
-            depth = out.refined[i, 0].cpu() if refined else last.inv_depth[i, 0].cpu()
             if refined:
-                pred = {"inv_depth": depth, "motion": last.motion[i].cpu(), "flow": last.flow[i].cpu()}
-                rows.append({"id": batch["id"][i], "it": "refined", **metrics.evaluate_sample(pred, truth, **protocol)})
-            if histogram is not None:
-                histogram.add(metrics.pixel_depth_errors({"inv_depth": depth}, truth, **protocol))
-            if len(kept) < keep:
-                kept.append({"id": batch["id"][i], "image1": batch["image1"][i],
-                             "gt_inv_depth": batch["inv_depth"][i, 0], "gt_motion": batch["motion"][i],
-                             "inv_depth": depth, "flow": last.flow[i].cpu(),
-                             "normals": last.normals[i].cpu(), "intrinsics": batch["intrinsics"][i]})
-    return rows, kept
+                groups["refined"] = predicted(last, i, inv_depth=out.refined[i, 0].cpu())
+            yield scoring.Prediction(sample, groups, "refined" if refined else len(out.passes) - 1,
+                                     flow=last.flow[i].cpu(), normals=last.normals[i].cpu())
 
 
 def summarize(rows: Sequence[dict[str, Any]], iterations: int) -> dict[str, float]:
