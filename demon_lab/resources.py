@@ -19,3 +19,12 @@ STUDIES = Path(str(files("demon_lab.ablations")))
 paper's numbers (``ablations/`` in the repository)."""
 DATA = PACKAGE / "data" / "real"
 """Real two-view samples that ship with demon_lab (``data/real/README.md``: origin and licence)."""
+
+
+def cache_root() -> Path:
+    """Where demon_lab caches what it computes (trained stages, rendered scenes): ``$DEMON_LAB_CACHE``,
+    else ``~/.cache/demon_lab``. The one place this default is written: the config's ``cache_dir``
+    (``${demon_lab_cache:}``) and the datasets' render cache (``<root>/data``) read it."""
+    import os
+
+    return Path(os.environ.get("DEMON_LAB_CACHE") or Path.home() / ".cache" / "demon_lab")

@@ -28,10 +28,11 @@ from demon_lab.data import sample as smp
 from demon_lab.data import synthetic
 from demon_lab.data.readers import demon_h5, middlebury, pair_folder, tum
 from demon_lab.data.synthetic import GENERATOR_VERSION, render_key
+from demon_lab.resources import cache_root
 
 SPLIT_SEEDS = {"train": 0, "val": 10_000_000, "test": 20_000_000}
 """Synthetic samples of split S use seeds SPLIT_SEEDS[S] + index: disjoint ranges."""
-DEFAULT_CACHE = Path(os.environ.get("DEMON_LAB_CACHE", Path.home() / ".cache" / "demon_lab")) / "data"
+DEFAULT_CACHE = cache_root() / "data"
 
 
 TRAINING_KEYS = ("id", "image1", "image2", "inv_depth", "motion", "intrinsics", "intrinsics2", "baseline")

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from demon_lab.resources import DATA
+from demon_lab.resources import DATA, cache_root
 
 ALLOWED_TARGETS = ("demon_lab.", "torch.", "lightning.")
 
@@ -47,7 +47,7 @@ def register_resolvers() -> None:
     (:data:`demon_lab.resources.DATA`), whatever the working directory; ``${times:N,K}`` -> N x K
     for integers (nothing else is evaluated); ``${non_semantic_overrides:}`` -> the job's
     overrides that change no result; ``${folder:NAME}`` -> a job folder's name that fits the file
-    system (:func:`_folder`)."""
+    system (:func:`_folder`); ``${demon_lab_cache:}`` -> :func:`demon_lab.resources.cache_root`."""
     from omegaconf import OmegaConf
 
     if not OmegaConf.has_resolver("bundled"):
@@ -58,6 +58,8 @@ def register_resolvers() -> None:
         OmegaConf.register_new_resolver("folder", _folder)
     if not OmegaConf.has_resolver("non_semantic_overrides"):
         OmegaConf.register_new_resolver("non_semantic_overrides", _non_semantic_overrides)
+    if not OmegaConf.has_resolver("demon_lab_cache"):
+        OmegaConf.register_new_resolver("demon_lab_cache", lambda: str(cache_root()))
 
 
 def _non_semantic_overrides(*, _root_: Any) -> list[str]:
