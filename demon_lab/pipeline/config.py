@@ -75,6 +75,38 @@ class ConfigError(ValueError):
     """A bad configuration value: the message names the key and what is allowed (one line)."""
 
 
+def expect_int(key: str, value: Any, minimum: int | None = None) -> int:
+    """``value`` if it is an integer (>= ``minimum``), else the ConfigError line naming ``key``."""
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise ConfigError(f"{key}: expected an integer{'' if minimum is None else f' >= {minimum}'}, got {value!r}")
+    if minimum is not None and value < minimum:
+        raise ConfigError(f"{key}: expected an integer >= {minimum}, got {value}")
+    return value
+
+
+def expect_positive(key: str, value: Any, allow_zero: bool = False) -> float:
+    """``value`` as a float if it is a positive (or, with ``allow_zero``, non-negative) number."""
+    if isinstance(value, bool) or not isinstance(value, int | float) or not (value >= 0 if allow_zero else value > 0):
+        raise ConfigError(f"{key}: expected a {'non-negative' if allow_zero else 'positive'} number, got {value!r}")
+    return float(value)
+
+
+def expect_choice(key: str, value: Any, allowed: tuple) -> None:
+    """Nothing if ``value`` is one of ``allowed``, else the ConfigError line listing them."""
+    if value not in allowed:
+        shown = ", ".join("null" if a is None else str(a) for a in allowed)
+        raise ConfigError(f"{key}: expected one of {shown}, got {value!r}")
+
+
+def expect_fraction(key: str, value: Any, low_open: bool = False, note: str = "") -> float:
+    """``value`` if it is a number in [0, 1] (``low_open``: (0, 1]), else the ConfigError line."""
+    if isinstance(value, bool) or not isinstance(value, int | float) or not (
+            0 < value <= 1 if low_open else 0 <= value <= 1):
+        raise ConfigError(f"{key}: expected a fraction of the stage in {'(0, 1]' if low_open else '[0, 1]'}{note}, "
+                          f"got {value!r}")
+    return float(value)
+
+
 def drop_missing_sources(cfg: Any, train: bool = True) -> list[str]:
     """Remove the data sources marked ``optional: true`` whose ``path`` does not exist, and the
     ``optional`` marks (DeMoN's files under ``data.root``: whichever are present). The training

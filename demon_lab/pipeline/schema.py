@@ -27,7 +27,7 @@ from typing import Any, ClassVar
 from omegaconf import DictConfig, OmegaConf
 
 from demon_lab.core.losses import DEPTH_MOTION_WEIGHTS, FLOW_SIG_WEIGHTS, FLOW_WEIGHTS, REFINE_WEIGHTS
-from demon_lab.pipeline.config import ConfigError
+from demon_lab.pipeline.config import ConfigError, expect_choice, expect_fraction, expect_int, expect_positive
 
 PRIOR_KEYS = ("flow1_prior", "dm1_prior", "flow2_prior", "dm2_prior")
 """The model options that give a net a prior (:mod:`demon_lab.nets.prior`)."""
@@ -119,6 +119,31 @@ class StageSpec:
         that the stage's options set."""
         return {"easy_first": self.easy_first, "fresh_scenes": self.fresh_scenes}
 
+    @classmethod
+    def check(cls, name: str, values: dict[str, Any]) -> None:
+        """The rules of the kind's own options, on the stage's values as the config gives them (a
+        ConfigError line naming ``schedule.stages.NAME.OPTION``); the rules across the config
+        (``data``, the devices, the stages before it) are :func:`demon_lab.pipeline.validate.validate`'s."""
+        key = f"schedule.stages.{name}."
+        expect_int(key + "steps", values["steps"], 0)
+        expect_positive(key + "lr", values["lr"])
+        expect_choice(key + "oracle", values.get("oracle"), cls.oracles)
+        expect_int(key + "warmup_steps", values.get("warmup_steps", 0), 0)
+        easy = values.get("easy_first")
+        if easy is not None:
+            numbers = isinstance(easy, list) and len(easy) == 2 and all(
+                isinstance(v, int | float) and not isinstance(v, bool) for v in easy)
+            if not numbers or not (0 < easy[0] <= 1 and 0 < easy[1] <= 1):
+                raise ConfigError(f"{key}easy_first: expected [start, until]: the easiest fraction start in (0, 1] "
+                                  f"widening to all samples at the fraction until in (0, 1] of the stage, got {easy!r}")
+        rate = values.get("fresh_scenes", 0.0)
+        if isinstance(rate, bool) or not isinstance(rate, int | float) or not 0 <= rate <= 1:
+            raise ConfigError(f"{key}fresh_scenes: expected new scenes per training draw in [0, 1], got {rate!r}")
+        if rate and easy is not None:
+            raise ConfigError(f"{key}fresh_scenes: the easy_first order is of a fixed set of scenes; "
+                              f"leave easy_first unset")
+        expect_int(key + "keep_best", values.get("keep_best", 0), 0)
+
 
 @dataclass(frozen=True)
 class FlowStageSpec(StageSpec):
@@ -150,6 +175,29 @@ class FlowStageSpec(StageSpec):
     def curriculum(self) -> dict[str, Any]:
         return {**super().curriculum(), "layers_first": self.layers_first}
 
+    @classmethod
+    def check(cls, name: str, values: dict[str, Any]) -> None:
+        super().check(name, values)
+        key = f"schedule.stages.{name}."
+        expect_fraction(key + "sig_start", values.get("sig_start", 0.0), note=" (1: never)")
+        expect_positive(key + "level5_fade", values.get("level5_fade", 1.0))
+        net = values.get("net", "flow1")
+        for option, what in FLOW1_ONLY.items():
+            if values.get(option) is not None and net != "flow1":
+                raise ConfigError(f"{key}{option}: only the bootstrap flow net's stage (flow1) {what} "
+                                  f"(this stage: {cls.kind}, {net})")
+        if values.get("layers_first") is not None:
+            expect_fraction(key + "layers_first", values["layers_first"], low_open=True)
+            if values.get("easy_first") is not None:
+                raise ConfigError(f"{key}layers_first: one curriculum at a time; leave easy_first unset")
+        restarts = values.get("restarts")
+        if restarts is not None:
+            pair = isinstance(restarts, list) and len(restarts) == 2 and all(
+                isinstance(v, int) and not isinstance(v, bool) for v in restarts)
+            if not pair or not (restarts[0] >= 1 and 1 <= restarts[1] < values["steps"]):
+                raise ConfigError(f"{key}restarts: expected [starts, steps]: starts >= 1, each trained 1 <= steps "
+                                  f"< the stage's {values['steps']} steps, got {restarts!r}")
+
 
 @dataclass(frozen=True)
 class DepthMotionStageSpec(StageSpec):
@@ -169,6 +217,11 @@ class DepthMotionStageSpec(StageSpec):
     def module_options(self) -> dict[str, Any]:
         return {**super().module_options(), "net": self.net, "oracle": self.oracle,
                 "gt_flow_warmup": self.gt_flow_warmup}
+
+    @classmethod
+    def check(cls, name: str, values: dict[str, Any]) -> None:
+        super().check(name, values)
+        expect_fraction(f"schedule.stages.{name}.gt_flow_warmup", values.get("gt_flow_warmup", 0.0))
 
 
 @dataclass(frozen=True)
@@ -190,6 +243,11 @@ class IterativeStageSpec(StageSpec):
 
     def weight_keys(self) -> tuple[str, ...]:
         return _without_unstarted_sig(self.loss_weights, self.sig_start)
+
+    @classmethod
+    def check(cls, name: str, values: dict[str, Any]) -> None:
+        super().check(name, values)
+        expect_fraction(f"schedule.stages.{name}.sig_start", values.get("sig_start", 0.0), note=" (1: never)")
 
     def trained_nets(self) -> tuple[str, ...]:
         return ("flow2", "dm2")
@@ -225,6 +283,12 @@ def _without_unstarted_sig(weights: tuple[str, ...], sig_start: float) -> tuple[
     return tuple(k for k in weights if k not in FLOW_SIG_WEIGHTS) if sig_start >= 1 else weights
 
 
+FLOW1_ONLY = {"layers_first": "trains on 2-D layers", "restarts": "screens restarts"}
+"""The options only the bootstrap flow net's stage takes, and what they do."""
+OTHER_KINDS = {"level5_fade": "only flow stages have level-5 terms",
+               "gt_flow_warmup": "only depth-motion stages are fed flow"}
+"""Options of one kind, and why, for the line that refuses them on a stage of another."""
+
 STAGE_SPECS: dict[str, type[StageSpec]] = {s.kind: s for s in (FlowStageSpec, DepthMotionStageSpec,
                                                               IterativeStageSpec, RefineStageSpec)}
 """The kinds of training stage (``schedule.stages.NAME.kind``) and their options."""
@@ -243,11 +307,18 @@ def stage_spec(cfg: DictConfig, name: str) -> StageSpec:
     kind = values.pop("kind")
     spec = STAGE_SPECS[kind]
     unknown = sorted(set(values) - set(options_of(kind)))
+    for option in unknown:  # another kind's option, set here: why it is that kind's
+        if option in FLOW1_ONLY and values[option] is not None:
+            raise ConfigError(f"schedule.stages.{name}.{option}: only the bootstrap flow net's stage (flow1) "
+                              f"{FLOW1_ONLY[option]} (this stage: {kind}, {values.get('net')})")
+        if option in OTHER_KINDS and values[option] is not None:
+            raise ConfigError(f"schedule.stages.{name}.{option}: {OTHER_KINDS[option]} (this stage's kind: {kind})")
     if unknown:
         raise ConfigError(f"schedule.stages.{name}.{unknown[0]}: not an option of a {kind} stage (its options: "
                           f"{', '.join(options_of(kind))})")
     defaults = {f.name: f.default for f in fields(spec) if f.default is not dataclasses.MISSING}
     values = {k: v for k, v in values.items() if v is not None or defaults.get(k) is None}
+    spec.check(name, values)
     for key in ("easy_first", "restarts"):
         if values.get(key) is not None:
             values[key] = tuple(values[key])

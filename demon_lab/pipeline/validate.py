@@ -12,37 +12,15 @@ is typed in :mod:`demon_lab.pipeline.schema`, which the code reads it through.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 
 from demon_lab.baselines.methods import METHODS as BASELINES
 from demon_lab.core.losses import check_weights
 from demon_lab.nets.chain import ORACLES
-from demon_lab.pipeline.config import ConfigError
-from demon_lab.pipeline.schema import PRIOR_KEYS, STAGE_KIND_NAMES, STAGE_SPECS, ModelSpec, stage_spec
+from demon_lab.pipeline.config import ConfigError, expect_choice, expect_int, expect_positive
+from demon_lab.pipeline.schema import PRIOR_KEYS, STAGE_KIND_NAMES, ModelSpec, stage_spec
 from demon_lab.pipeline.stages.schedule import LR_SCHEDULES
-
-
-def _int(key: str, value: Any, minimum: int | None = None) -> int:
-    if isinstance(value, bool) or not isinstance(value, int):
-        raise ConfigError(f"{key}: expected an integer{'' if minimum is None else f' >= {minimum}'}, got {value!r}")
-    if minimum is not None and value < minimum:
-        raise ConfigError(f"{key}: expected an integer >= {minimum}, got {value}")
-    return value
-
-
-def _positive(key: str, value: Any, allow_zero: bool = False) -> float:
-    if isinstance(value, bool) or not isinstance(value, int | float) or not (value >= 0 if allow_zero else value > 0):
-        raise ConfigError(f"{key}: expected a {'non-negative' if allow_zero else 'positive'} number, got {value!r}")
-    return float(value)
-
-
-def _choice(key: str, value: Any, allowed: tuple) -> None:
-    if value not in allowed:
-        shown = ", ".join("null" if a is None else str(a) for a in allowed)
-        raise ConfigError(f"{key}: expected one of {shown}, got {value!r}")
-
 
 PATH_KEYS = ("path", "root")
 """Arguments of the datasets (``demon_lab.data.datasets``) that name a file or folder to read."""
@@ -89,7 +67,7 @@ def _model_files(cfg: DictConfig) -> None:
     from demon_lab.nets.chain import COMPATS
 
     model = ModelSpec.of(cfg.model)
-    _choice("model.compat", model.compat, COMPATS)
+    expect_choice("model.compat", model.compat, COMPATS)
     if model.compat == "demon_original" and model.variant != "v1":
         raise ConfigError("model.compat: demon_original reproduces DeMoN's released v1 graph; it needs "
                           f"model.variant=v1, got {model.variant}")
@@ -106,7 +84,7 @@ def _model_files(cfg: DictConfig) -> None:
     from demon_lab.nets.prior import CHOICES
 
     for key in PRIOR_KEYS:
-        _choice(f"model.{key}", getattr(model, key), CHOICES[key])
+        expect_choice(f"model.{key}", getattr(model, key), CHOICES[key])
     if model.dm1_prior == "ransac_prior" and model.flow1_prior is None:
         raise ConfigError("model.dm1_prior: ransac_prior reads flow1's classical prior flow; set model.flow1_prior "
                           "(dis or dis_x2)")
@@ -136,13 +114,6 @@ def _model_files(cfg: DictConfig) -> None:
                               f"iterations={cfg.iterations} evaluates (the refinement net is optional)")
 
 
-def _flow1_only(name: str, spec: DictConfig, option: str, what: str) -> None:
-    """A stage option that only the bootstrap flow net's stage (flow1) takes."""
-    if spec.kind != "flow" or spec.get("net") not in (None, "flow1"):
-        raise ConfigError(f"schedule.stages.{name}.{option}: only the bootstrap flow net's stage (flow1) {what} "
-                          f"(this stage: {spec.kind}, {spec.get('net')})")
-
-
 def _kept_nets(cfg: DictConfig, stage: str, before: list[str]) -> None:
     """A stage of 0 steps trains nothing: its nets stay as they are at that point of the schedule,
     so each must come from an earlier stage that trains it or from ``model.weights``."""
@@ -163,22 +134,22 @@ METHODS = ("demon", *BASELINES)
 
 
 def _baseline(node: DictConfig) -> None:
-    _choice("baseline.dis_preset", node.dis_preset, ("ultrafast", "fast", "medium"))
+    expect_choice("baseline.dis_preset", node.dis_preset, ("ultrafast", "fast", "medium"))
     for key in ("fb_threshold_px", "ransac_threshold_px", "sift_ratio", "sweep_max_disparity"):
-        _positive(f"baseline.{key}", node[key])
+        expect_positive(f"baseline.{key}", node[key])
     if node.sift_ratio >= 1:
         raise ConfigError(f"baseline.sift_ratio: expected a number in (0, 1), got {node.sift_ratio}")
-    _int("baseline.dis_finest_scale", node.dis_finest_scale, 0)
-    _int("baseline.dis_iterations", node.dis_iterations, 1)
-    _int("baseline.ransac_iterations", node.ransac_iterations, 1)
-    _int("baseline.max_correspondences", node.max_correspondences, 8)
-    _int("baseline.min_matches", node.min_matches, 8)
-    _int("baseline.sweep_hypotheses", node.sweep_hypotheses, 2)
+    expect_int("baseline.dis_finest_scale", node.dis_finest_scale, 0)
+    expect_int("baseline.dis_iterations", node.dis_iterations, 1)
+    expect_int("baseline.ransac_iterations", node.ransac_iterations, 1)
+    expect_int("baseline.max_correspondences", node.max_correspondences, 8)
+    expect_int("baseline.min_matches", node.min_matches, 8)
+    expect_int("baseline.sweep_hypotheses", node.sweep_hypotheses, 2)
     size = node.size
     if size != "native" and not (OmegaConf.is_list(size) and len(size) == 2
                                  and all(isinstance(v, int) and not isinstance(v, bool) and v >= 32 for v in size)):
         raise ConfigError(f"baseline.size: expected native or [H, W] with sides >= 32 pixels, got {size}")
-    window = _int("baseline.sweep_window", node.sweep_window, 1)
+    window = expect_int("baseline.sweep_window", node.sweep_window, 1)
     if window % 2 == 0:
         raise ConfigError(f"baseline.sweep_window: expected an odd integer, got {window}")
 
@@ -210,21 +181,6 @@ SYNTHETIC_SOURCE = "demon_lab.data.datasets.SyntheticDataset"
 """The training source whose scenes ``fresh_scenes`` renders (a generator makes new ones)."""
 
 
-def _fresh_scenes(cfg: DictConfig, name: str, spec: DictConfig) -> None:
-    rate = spec.fresh_scenes
-    if isinstance(rate, bool) or not isinstance(rate, (int, float)) or not 0 <= rate <= 1:
-        raise ConfigError(f"schedule.stages.{name}.fresh_scenes: expected new scenes per training draw in "
-                          f"[0, 1], got {rate!r}")
-    if not rate:
-        return
-    if spec.get("easy_first") is not None:
-        raise ConfigError(f"schedule.stages.{name}.fresh_scenes: the easy_first order is of a fixed set of "
-                          f"scenes; leave easy_first unset")
-    if not any(entry.dataset.get("_target_") == SYNTHETIC_SOURCE for entry in cfg.data.train):
-        raise ConfigError(f"schedule.stages.{name}.fresh_scenes: renders synthetic scenes, and data.train has "
-                          f"no {SYNTHETIC_SOURCE} source")
-
-
 def validate(cfg: DictConfig, here: bool = True) -> None:
     """Check every key the job reads (one ConfigError line). ``here=False``: the job will run on
     another machine (a cluster launcher), so what depends on this machine's devices is left to the
@@ -233,114 +189,62 @@ def validate(cfg: DictConfig, here: bool = True) -> None:
         OmegaConf.to_container(cfg, resolve=True, throw_on_missing=True)
     except Exception as e:
         raise ConfigError(str(e).splitlines()[0]) from None
-    _int("iterations", cfg.iterations, 0)
-    _int("seed", cfg.seed, 0)
+    expect_int("iterations", cfg.iterations, 0)
+    expect_int("seed", cfg.seed, 0)
     if cfg.threads is not None:
-        _int("threads", cfg.threads, 1)
-    _choice("oracle", cfg.oracle, ORACLES)
-    _choice("method", cfg.method, METHODS)
+        expect_int("threads", cfg.threads, 1)
+    expect_choice("oracle", cfg.oracle, ORACLES)
+    expect_choice("method", cfg.method, METHODS)
     if cfg.method != "demon" and cfg.oracle is not None:
         raise ConfigError(f"oracle: expected null with method={cfg.method} (oracles feed the DeMoN chain), "
                           f"got {cfg.oracle!r}")
     _baseline(cfg.baseline)
-    _choice("force", cfg.force, (True, False))
-    _choice("train", cfg.train, (True, False))
-    _choice("model.variant", cfg.model.variant, ("v1", "v2"))
-    _positive("model.width", cfg.model.width)
+    expect_choice("force", cfg.force, (True, False))
+    expect_choice("train", cfg.train, (True, False))
+    expect_choice("model.variant", cfg.model.variant, ("v1", "v2"))
+    expect_positive("model.width", cfg.model.width)
     size = list(cfg.data.size)
     if len(size) != 2 or any(isinstance(s, bool) or not isinstance(s, int) or s < 32 or s % 32 for s in size):
         raise ConfigError(f"data.size: expected [H, W] with sides positive multiples of 32, got {size}")
-    _int("data.batch_size", cfg.data.batch_size, 1)
-    _int("data.num_workers", cfg.data.num_workers, 0)
+    expect_int("data.batch_size", cfg.data.batch_size, 1)
+    expect_int("data.num_workers", cfg.data.num_workers, 0)
     _model_files(cfg)
     if not cfg.data.train:
         raise ConfigError("data.train: expected at least one training source")
-    _choice("schedule.lr_schedule", cfg.schedule.lr_schedule, LR_SCHEDULES)
-    _positive("schedule.weight_decay", cfg.schedule.weight_decay, allow_zero=True)
-    _positive("schedule.grad_clip", cfg.schedule.grad_clip)
+    expect_choice("schedule.lr_schedule", cfg.schedule.lr_schedule, LR_SCHEDULES)
+    expect_positive("schedule.weight_decay", cfg.schedule.weight_decay, allow_zero=True)
+    expect_positive("schedule.grad_clip", cfg.schedule.grad_clip)
     stages = list(cfg.schedule.stages)
-    _choice("schedule.until", cfg.schedule.until, tuple(stages))
+    expect_choice("schedule.until", cfg.schedule.until, tuple(stages))
     trained = stages[: stages.index(cfg.schedule.until) + 1]
     flow_oracle_study = cfg.oracle == "depth_motion" and "flow2" in trained  # scores flow2 only (EPE)
     if cfg.iterations > 0 and cfg.train and not {"flow2", "dm2"} <= set(trained) and not flow_oracle_study:
         raise ConfigError(f"iterations: expected 0 when schedule.until={cfg.schedule.until} "
                           f"(the iterative nets flow2 and dm2 are not trained), got {cfg.iterations}")
     for name in stages:
-        spec = cfg.schedule.stages[name]
-        _choice(f"schedule.stages.{name}.kind", spec.kind, STAGE_KIND_NAMES)
-        _int(f"schedule.stages.{name}.steps", spec.steps, 0)
+        expect_choice(f"schedule.stages.{name}.kind", cfg.schedule.stages[name].kind, STAGE_KIND_NAMES)
+        spec = stage_spec(cfg, name)  # the rules of its kind's own options (the spec's check)
         if spec.steps == 0 and name in trained:
             _kept_nets(cfg, name, trained[: trained.index(name)])
-        _positive(f"schedule.stages.{name}.lr", spec.lr)
-        _choice(f"schedule.stages.{name}.oracle", spec.get("oracle"), STAGE_SPECS[spec.kind].oracles)
-        if "warmup_steps" in spec:
-            _int(f"schedule.stages.{name}.warmup_steps", spec.warmup_steps, 0)
-        if spec.kind in ("flow", "iterative") and "sig_start" in spec:
-            start = spec.sig_start
-            if isinstance(start, bool) or not isinstance(start, (int, float)) or not 0 <= start <= 1:
-                raise ConfigError(f"schedule.stages.{name}.sig_start: expected a fraction of the stage in "
-                                  f"[0, 1] (1: never), got {start!r}")
-        if spec.get("level5_fade") is not None:
-            if spec.kind != "flow":
-                raise ConfigError(f"schedule.stages.{name}.level5_fade: only flow stages have level-5 terms "
-                                  f"(this stage's kind: {spec.kind})")
-            _positive(f"schedule.stages.{name}.level5_fade", spec.level5_fade)
-        if spec.get("gt_flow_warmup") is not None:
-            warmup = spec.gt_flow_warmup
-            if spec.kind != "depth_motion":
-                raise ConfigError(f"schedule.stages.{name}.gt_flow_warmup: only depth-motion stages are fed flow "
-                                  f"(this stage's kind: {spec.kind})")
-            if isinstance(warmup, bool) or not isinstance(warmup, (int, float)) or not 0 <= warmup <= 1:
-                raise ConfigError(f"schedule.stages.{name}.gt_flow_warmup: expected a fraction of the stage in "
-                                  f"[0, 1], got {warmup!r}")
-        if spec.get("easy_first") is not None:
-            easy = spec.easy_first
-            numbers = OmegaConf.is_list(easy) and len(easy) == 2 and all(
-                isinstance(v, (int, float)) and not isinstance(v, bool) for v in easy)
-            if not numbers or not (0 < easy[0] <= 1 and 0 < easy[1] <= 1):
-                given = OmegaConf.to_container(easy) if OmegaConf.is_list(easy) else easy
-                raise ConfigError(f"schedule.stages.{name}.easy_first: expected [start, until]: the easiest "
-                                  f"fraction start in (0, 1] widening to all samples at the fraction until in "
-                                  f"(0, 1] of the stage, got {given!r}")
-        if spec.get("fresh_scenes") is not None:
-            _fresh_scenes(cfg, name, spec)
-        if spec.get("keep_best") is not None:
-            _int(f"schedule.stages.{name}.keep_best", spec.keep_best, 0)
-            if spec.keep_best and not cfg.data.get("val"):
-                raise ConfigError(f"schedule.stages.{name}.keep_best: scores the held-apart sets, and data.val "
-                                  f"has none; set data.val or keep_best=0")
-        if spec.get("layers_first") is not None:
-            first = spec.layers_first
-            _flow1_only(name, spec, "layers_first", "trains on 2-D layers")
-            if isinstance(first, bool) or not isinstance(first, (int, float)) or not 0 < first <= 1:
-                raise ConfigError(f"schedule.stages.{name}.layers_first: expected a fraction of the stage in "
-                                  f"(0, 1], got {first!r}")
-            if spec.get("easy_first") is not None:
-                raise ConfigError(f"schedule.stages.{name}.layers_first: one curriculum at a time; "
-                                  f"leave easy_first unset")
-        if spec.get("restarts") is not None:
-            restarts = spec.restarts
-            _flow1_only(name, spec, "restarts", "screens restarts")
-            pair = OmegaConf.is_list(restarts) and len(restarts) == 2 and all(
-                isinstance(v, int) and not isinstance(v, bool) for v in restarts)
-            if not pair or not (restarts[0] >= 1 and 1 <= restarts[1] < spec.steps):
-                given = OmegaConf.to_container(restarts) if OmegaConf.is_list(restarts) else restarts
-                raise ConfigError(f"schedule.stages.{name}.restarts: expected [starts, steps]: starts >= 1, each "
-                                  f"trained 1 <= steps < the stage's {spec.steps} steps, got {given!r}")
-            if cfg.trainer.devices * cfg.trainer.num_nodes > 1:
-                raise ConfigError(f"schedule.stages.{name}.restarts: screening restarts runs in one process; "
-                                  f"train with trainer.devices=1 trainer.num_nodes=1")
-        stage_spec(cfg, name)  # an option the stage's kind does not take
+        if spec.fresh_scenes and not any(entry.dataset.get("_target_") == SYNTHETIC_SOURCE for entry in cfg.data.train):
+            raise ConfigError(f"schedule.stages.{name}.fresh_scenes: renders synthetic scenes, and data.train has "
+                              f"no {SYNTHETIC_SOURCE} source")
+        if spec.keep_best and not cfg.data.get("val"):
+            raise ConfigError(f"schedule.stages.{name}.keep_best: scores the held-apart sets, and data.val "
+                              f"has none; set data.val or keep_best=0")
+        if getattr(spec, "restarts", None) is not None and cfg.trainer.devices * cfg.trainer.num_nodes > 1:
+            raise ConfigError(f"schedule.stages.{name}.restarts: screening restarts runs in one process; "
+                              f"train with trainer.devices=1 trainer.num_nodes=1")
     try:
         check_weights(OmegaConf.to_container(cfg.loss, resolve=True))
     except ValueError as e:
         raise ConfigError(str(e)) from None
     if cfg.eval.max_samples is not None:
-        _int("eval.max_samples", cfg.eval.max_samples, 1)
-    _int("eval.batch_size", cfg.eval.batch_size, 1)
-    _choice("trainer.accelerator", cfg.trainer.accelerator, ("auto", "cpu", "gpu", "cuda", "mps"))
-    _int("trainer.devices", cfg.trainer.devices, 1)
-    _int("trainer.num_nodes", cfg.trainer.num_nodes, 1)
+        expect_int("eval.max_samples", cfg.eval.max_samples, 1)
+    expect_int("eval.batch_size", cfg.eval.batch_size, 1)
+    expect_choice("trainer.accelerator", cfg.trainer.accelerator, ("auto", "cpu", "gpu", "cuda", "mps"))
+    expect_int("trainer.devices", cfg.trainer.devices, 1)
+    expect_int("trainer.num_nodes", cfg.trainer.num_nodes, 1)
     if not isinstance(cfg.trainer.reuse_frozen, bool):
         raise ConfigError(f"trainer.reuse_frozen: expected true or false, got {cfg.trainer.reuse_frozen!r}")
     _execution(cfg, here)
