@@ -548,15 +548,16 @@ def test_mixture_sampler_follows_weights_and_is_deterministic():
 def test_mixture_sampler_shards_every_batch_across_data_parallel_processes(skip):
     """Three processes with 4 samples each per step see, together, the 12-sample batches of one
     process, in order, also when a resumed stage skips the keys it already consumed."""
-    args = ([10, 1000], [3.0, 1.0], 120, 5, skip)
+    args = ([10, 1000], [3.0, 1.0], 120)
+    seeded = {"seed": 5, "skip": skip}
     batches = lambda keys, b: [keys[i:i + b] for i in range(0, len(keys), b)]  # noqa: E731
-    whole = batches(list(MixtureSampler(*args)), 12)
-    shards = [MixtureSampler(*args, rank=r, world=3, batch=4) for r in range(3)]
+    whole = batches(list(MixtureSampler(*args, **seeded)), 12)
+    shards = [MixtureSampler(*args, **seeded, rank=r, world=3, batch=4) for r in range(3)]
     assert all(len(s) == 40 for s in shards)
     parts = [batches(list(s), 4) for s in shards]
     assert [[key for p in parts for key in p[k]] for k in range(len(whole))] == whole
     with pytest.raises(ValueError, match="rank 3 of a world of 3"):
-        MixtureSampler(*args, rank=3, world=3, batch=4)
+        MixtureSampler(*args, **seeded, rank=3, world=3, batch=4)
 
 
 def test_an_easy_first_curriculum_widens_from_the_easiest_samples_to_all():
@@ -564,22 +565,23 @@ def test_an_easy_first_curriculum_widens_from_the_easiest_samples_to_all():
     q rising from 0.2 at the first key to 1 at half the keys; shards and a resumed stage see the keys
     of one uninterrupted process; start 1 is the plain sampler."""
     order = [list(range(9, -1, -1)), list(range(19, -1, -1))]  # easiest: the highest indices
-    args = ([10, 20], [1.0, 1.0], 400, 3)
-    keys = list(MixtureSampler(*args, easy_first=(0.2, 0.5), order=order))
+    args = ([10, 20], [1.0, 1.0], 400)
+    seeded = {"seed": 3}
+    keys = list(MixtureSampler(*args, **seeded, easy_first=(0.2, 0.5), order=order))
     for n, (s, i, _) in enumerate(keys):
         share = min(1.0, 0.2 + 0.8 * n / 200)
         assert order[s].index(i) < math.ceil(share * (10, 20)[s]), (n, s, i)
     first = [(s, i) for s, i, _ in keys[:20]]  # q < 0.28: 3 of 10, 6 of 20
     assert {i for s, i in first if s == 0} <= {9, 8, 7} and {i for s, i in first if s == 1} <= set(range(14, 20))
     assert {i for s, i, _ in keys[200:] if s == 1} == set(range(20))  # the whole source after until
-    resumed = list(MixtureSampler(*args, skip=120, easy_first=(0.2, 0.5), order=order))
+    resumed = list(MixtureSampler(*args, **seeded, skip=120, easy_first=(0.2, 0.5), order=order))
     assert resumed == keys[120:]
-    shards = [list(MixtureSampler(*args, rank=r, world=2, batch=4, easy_first=(0.2, 0.5), order=order))
+    shards = [list(MixtureSampler(*args, **seeded, rank=r, world=2, batch=4, easy_first=(0.2, 0.5), order=order))
               for r in range(2)]
     assert [k for b in range(50) for shard in shards for k in shard[4 * b:4 * b + 4]] == keys
-    plain = list(MixtureSampler(*args))
+    plain = list(MixtureSampler(*args, **seeded))
     assert keys[:200] != plain[:200]
-    assert list(MixtureSampler(*args, easy_first=(1.0, 0.5), order=order)) == plain
+    assert list(MixtureSampler(*args, **seeded, easy_first=(1.0, 0.5), order=order)) == plain
     # every key's pool is exactly ceil(q(n) x length), replayed from the sampler's stream
     rng = np.random.default_rng([3, 0])
     sources = rng.choice(2, size=400, p=[0.5, 0.5])
@@ -588,14 +590,15 @@ def test_an_easy_first_curriculum_widens_from_the_easiest_samples_to_all():
         expected = int(rng.integers((10, 20)[s])) if q == 1 else order[s][int(rng.integers(math.ceil(q * (10, 20)[s])))]
         assert keys[n][:2] == (int(s), expected), n
     # the ramp counts keys of the whole sequence: a later epoch is past it, drawn as the plain sampler
-    later, plain_later = MixtureSampler(*args, easy_first=(0.2, 0.5), order=order), MixtureSampler(*args)
+    later = MixtureSampler(*args, **seeded, easy_first=(0.2, 0.5), order=order)
+    plain_later = MixtureSampler(*args, **seeded)
     later.set_epoch(1)
     plain_later.set_epoch(1)
     assert list(later) == list(plain_later)
     with pytest.raises(ValueError, match="easy_first: expected an order"):
-        MixtureSampler(*args, easy_first=(0.2, 0.5))
+        MixtureSampler(*args, **seeded, easy_first=(0.2, 0.5))
     with pytest.raises(ValueError, match=r"easy_first: expected \(start, until\) in \(0, 1\]"):
-        MixtureSampler(*args, easy_first=(0.2, 0.0), order=order)
+        MixtureSampler(*args, **seeded, easy_first=(0.2, 0.0), order=order)
 
 
 def test_flow_order_ranks_samples_by_their_mean_flow():
@@ -854,20 +857,21 @@ def test_a_lead_source_fills_the_first_fraction_of_the_stage_in_whole_batches():
     """lead=(2, 0.25) over 200 keys in global batches of 8 (4 per process, 2 processes): the first 48
     keys (0.25 x 200 = 50, rounded to 6 whole batches) come from source 2, none after it (weight 0);
     the rest draw as the plain sampler; shards and a resumed stage see the keys of one process."""
-    args = ([10, 20, 10**9], [1.0, 1.0, 0.0], 200, 4)
-    keys = list(MixtureSampler(*args, batch=8, lead=(2, 0.25)))
+    args = ([10, 20, 10**9], [1.0, 1.0, 0.0], 200)
+    seeded = {"seed": 4}
+    keys = list(MixtureSampler(*args, **seeded, batch=8, lead=(2, 0.25)))
     assert [s for s, _, _ in keys[:48]] == [2] * 48 and all(s != 2 for s, _, _ in keys[48:])
     assert len({i for _, i, _ in keys[:48]}) == 48  # (a fresh pair per key)
-    plain = list(MixtureSampler(*args, batch=8))
+    plain = list(MixtureSampler(*args, **seeded, batch=8))
     assert [k[0] for k in keys[48:]] == [k[0] for k in plain[48:]]
-    shards = [list(MixtureSampler(*args, rank=r, world=2, batch=4, lead=(2, 0.25))) for r in range(2)]
+    shards = [list(MixtureSampler(*args, **seeded, rank=r, world=2, batch=4, lead=(2, 0.25))) for r in range(2)]
     assert [k for b in range(25) for shard in shards for k in shard[4 * b:4 * b + 4]] == keys
-    assert list(MixtureSampler(*args, batch=8, skip=40, lead=(2, 0.25))) == keys[40:]
-    later = MixtureSampler(*args, batch=8, lead=(2, 0.25))
+    assert list(MixtureSampler(*args, **seeded, batch=8, skip=40, lead=(2, 0.25))) == keys[40:]
+    later = MixtureSampler(*args, **seeded, batch=8, lead=(2, 0.25))
     later.set_epoch(1)
     assert all(s != 2 for s, _, _ in later)  # the lead is the start of the stage (its first epoch)
     with pytest.raises(ValueError, match="lead: expected"):
-        MixtureSampler(*args, lead=(3, 0.3))
+        MixtureSampler(*args, **seeded, lead=(3, 0.3))
     with pytest.raises(ValueError, match="one curriculum at a time"):
         MixtureSampler([10, 20], [1.0, 1.0], 200, lead=(1, 0.3), easy_first=(0.5, 0.5), order=[range(10), range(20)])
 
@@ -894,9 +898,10 @@ def test_a_fresh_source_grows_by_one_new_scene_at_its_rate_and_replays_from_any_
     which it grows is that new scene, its first appearance; every other draw of it is uniform over the
     pool so far; source 1 draws as the plain sampler (the same sources, key for key); shards and a
     resumed stage see the keys of one process; fresh 0 everywhere is the plain sampler."""
-    args = ([10, 20], [1.0, 1.0], 400, 3)
-    keys = list(MixtureSampler(*args, batch=8, fresh=[0.1, 0.0]))
-    plain = list(MixtureSampler(*args, batch=8))
+    args = ([10, 20], [1.0, 1.0], 400)
+    seeded = {"seed": 3}
+    keys = list(MixtureSampler(*args, **seeded, batch=8, fresh=[0.1, 0.0]))
+    plain = list(MixtureSampler(*args, **seeded, batch=8))
     assert [k[0] for k in keys] == [k[0] for k in plain]
     grown = [i for s, i, _ in keys if s == 0]
     first_seen: dict[int, int] = {}
@@ -908,14 +913,14 @@ def test_a_fresh_source_grows_by_one_new_scene_at_its_rate_and_replays_from_any_
             assert index == pool - 1 and first_seen[index] == c
     assert sorted(i for i in first_seen if i >= 10) == list(range(10, 10 + len(grown) // 10))
     assert max(i for s, i, _ in keys if s == 1) < 20
-    shards = [list(MixtureSampler(*args, rank=r, world=2, batch=4, fresh=[0.1, 0.0])) for r in range(2)]
+    shards = [list(MixtureSampler(*args, **seeded, rank=r, world=2, batch=4, fresh=[0.1, 0.0])) for r in range(2)]
     assert [k for b in range(50) for shard in shards for k in shard[4 * b:4 * b + 4]] == keys
-    assert list(MixtureSampler(*args, batch=8, skip=96, fresh=[0.1, 0.0])) == keys[96:]
-    assert list(MixtureSampler(*args, batch=8, fresh=[0.0, 0.0])) == plain
+    assert list(MixtureSampler(*args, **seeded, batch=8, skip=96, fresh=[0.1, 0.0])) == keys[96:]
+    assert list(MixtureSampler(*args, **seeded, batch=8, fresh=[0.0, 0.0])) == plain
     with pytest.raises(ValueError, match="fresh: expected one rate"):
-        MixtureSampler(*args, fresh=[0.1])
+        MixtureSampler(*args, **seeded, fresh=[0.1])
     with pytest.raises(ValueError, match="fresh: the easy_first order"):
-        MixtureSampler(*args, fresh=[0.1, 0.0], easy_first=(0.5, 0.5), order=[range(10), range(20)])
+        MixtureSampler(*args, **seeded, fresh=[0.1, 0.0], easy_first=(0.5, 0.5), order=[range(10), range(20)])
 
 
 def test_fresh_scenes_render_new_scenes_of_the_next_seeds_in_the_loaders_worker(tmp_path):

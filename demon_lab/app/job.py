@@ -122,22 +122,32 @@ def run(cfg: DictConfig) -> dict[str, Any]:
 
 
 def _train_and_evaluate(cfg: DictConfig, tracker, run_id: str) -> dict[str, Any]:
+    """The job's work in its run ``run_id``: the chain's stages (:func:`_train`), the test sets
+    scored, and the results logged and printed (:func:`_record`)."""
     from demon_lab.pipeline.evaluate import evaluate_test_sets
+
+    chain, stages, figures = _train(cfg, tracker, run_id) if cfg.method in CHAIN_METHODS else (None, [], {})
+    refined = _has_refinement(cfg, [s.name for s in stages])
+    results = evaluate_test_sets(cfg, chain, refined)
+    summary = {r.name: r.summary for r in results}
+    _record(cfg, tracker, run_id, results, refined)
+    return {"summary": summary, "figures": figures}
+
+
+def _train(cfg: DictConfig, tracker, run_id: str) -> tuple[Any, list, dict[str, dict[str, float]]]:
+    """The chain with its scheduled stages cached or trained; a stage that trains gets a child run of
+    ``run_id`` (a killed one resumes its own) with Lightning's MLFlowLogger attached for its loss
+    curves. The stages' keys and figures go to the job's run."""
     from demon_lab.pipeline.stages.training import prepare_chain
-    from demon_lab.reporting.tables import results_table
-    from demon_lab.reporting.visualize import save_visuals
+    from demon_lab.pipeline.tracking import TAG, process_tracking_uri
 
     stage_runs: list[str] = []
 
     def on_stage(stage, status):
-        """A stage that trains gets a child run (a killed one resumes its own) and Lightning's
-        MLFlowLogger attached to it for the loss curves."""
         log.info("stage %s: %s", stage.name, f"cached {stage.path}" if status == "cached" else "training")
         if status == "cached":
             return None
         from lightning.pytorch.loggers import MLFlowLogger
-
-        from demon_lab.pipeline.tracking import TAG
 
         child = tracker.find_interrupted(stage.key, parent_id=run_id, tag="stage_key")
         if child is None:
@@ -146,13 +156,9 @@ def _train_and_evaluate(cfg: DictConfig, tracker, run_id: str) -> dict[str, Any]
         stage_runs.append(child)
         return MLFlowLogger(tracking_uri=tracker.uri, run_id=child)
 
-    from demon_lab.pipeline.tracking import process_tracking_uri
-
-    needs_chain = cfg.method in CHAIN_METHODS
     try:
         with process_tracking_uri():  # MLFlowLogger sets it process-wide: keep it this job's business
-            chain, stages, figures = (prepare_chain(cfg, on_stage, progress=sys.stderr.isatty()) if needs_chain
-                                      else (None, [], {}))
+            chain, stages, figures = prepare_chain(cfg, on_stage, progress=sys.stderr.isatty())
     except BaseException as e:
         for child in stage_runs:  # the stage that raised (its logger may have ended it FAILED), not the
             if tracker.client.get_run(child).info.status != "FINISHED":  # stages that finished before it
@@ -163,13 +169,26 @@ def _train_and_evaluate(cfg: DictConfig, tracker, run_id: str) -> dict[str, Any]
     stage_keys = {s.name: {"key": s.key, "path": str(s.path)} for s in stages}
     tracker.log_text(run_id, json.dumps(stage_keys, indent=2) + "\n", "stage_keys.json")
     tracker.log_metrics(run_id, {f"stage/{name}/{k}": v for name, fig in figures.items() for k, v in fig.items()})
+    return chain, stages, figures
 
-    refined = cfg.method == "demon" and (not cfg.train or "refine" in [s.name for s in stages])
-    if refined and not cfg.train and cfg.model.weights:  # the refinement net only if the file has it
+
+def _has_refinement(cfg: DictConfig, stages: list[str]) -> bool:
+    """Whether the chain's refinement net is trained (its rows are scored): scheduled, or, for an
+    untrained chain (``train=false``), in ``model.weights`` where the file is given."""
+    refined = cfg.method == "demon" and (not cfg.train or "refine" in stages)
+    if refined and not cfg.train and cfg.model.weights:
         from demon_lab.pipeline.weights import read_nets
 
         refined = "refine_net" in read_nets(cfg.model.weights, mmap=True)
-    results = evaluate_test_sets(cfg, chain, refined)
+    return refined
+
+
+def _record(cfg: DictConfig, tracker, run_id: str, results: list, refined: bool) -> None:
+    """The test sets' results in the job's run (metrics, per-sample rows, pixel-error histograms,
+    pictures, the table) and the table printed."""
+    from demon_lab.reporting.tables import results_table
+    from demon_lab.reporting.visualize import save_visuals
+
     summary = {r.name: r.summary for r in results}
     tracker.log_metrics(run_id, {f"test/{name}/{k}": v for name, values in summary.items() for k, v in values.items()})
     if cfg.method == "demon":
@@ -195,10 +214,10 @@ def _train_and_evaluate(cfg: DictConfig, tracker, run_id: str) -> dict[str, Any]
     # the job's result: printed (not logged), so it shows whatever the logging configuration
     print(f"[demon_lab] results (scale {cfg.scale.name}, seed {cfg.seed}, {what}; {UNITS_NOTE}):\n{table}\n",
           flush=True)
-    return {"summary": summary, "figures": figures}
 
 
 def _csv(rows: list[dict[str, Any]]) -> str:
+    """Rows with the union of their keys as columns, in first-seen order (a missing value empty)."""
     keys: list[str] = []
     for r in rows:
         keys += [k for k in r if k not in keys]

@@ -82,8 +82,9 @@ class DemonDataModule(L.LightningDataModule):
             weights, datasets = (*weights, 0.0), (*datasets, layers)
             lengths, fresh = [*lengths, len(layers)], [*fresh, 0.0]
             lead = (len(datasets) - 1, self.layers_first)
-        self._sampler = MixtureSampler(lengths, weights, self.samples_per_epoch, self.seed, self.skip, self.rank,
-                                       self.world, self.batch_size, self.easy_first, order, lead, fresh)
+        self._sampler = MixtureSampler(lengths, weights, self.samples_per_epoch, seed=self.seed, skip=self.skip,
+                                       rank=self.rank, world=self.world, batch=self.batch_size,
+                                       easy_first=self.easy_first, order=order, lead=lead, fresh=fresh)
         return self._loader(MixtureDataset(datasets), sampler=self._sampler, drop_last=True)
 
     def val_dataloader(self) -> list[DataLoader]:

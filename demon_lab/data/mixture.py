@@ -75,7 +75,7 @@ class MixtureSampler(torch.utils.data.Sampler):
     pool so far. So a stage meets new scenes at a steady rate, each rendered once by a loader worker,
     and its sequence is a function of the seed alone (a resumed stage sees the same keys)."""
 
-    def __init__(self, lengths: Sequence[int], weights: Sequence[float], num_samples: int, seed: int = 0,
+    def __init__(self, lengths: Sequence[int], weights: Sequence[float], num_samples: int, *, seed: int = 0,
                  skip: int = 0, rank: int = 0, world: int = 1, batch: int = 1,
                  easy_first: Sequence[float] | None = None, order: Sequence[Sequence[int]] | None = None,
                  lead: tuple[int, float] | None = None, fresh: Sequence[float] | None = None):
