@@ -85,7 +85,7 @@ def test_triangulated_depth_of_exact_flow_is_exact():
 def test_base_mat_f_on_exact_flow_recovers_motion_and_depth():
     _, _, motion, k, inv, flow = correspondences()
     sample = {"intrinsics": torch.from_numpy(k)}
-    out = M.base_mat_f(sample, BaselineConfig(), torch.from_numpy(flow))
+    out = M.base_mat_f(sample, BaselineConfig.default(), torch.from_numpy(flow))
     errors = metrics.motion_errors(out["motion"], motion)
     assert errors["rot_deg"] < 0.05 and errors["tran_deg"] < 0.5, errors
     truth = {"inv_depth": torch.from_numpy(inv), "motion": torch.from_numpy(motion), "intrinsics": torch.from_numpy(k)}
@@ -120,7 +120,7 @@ def sun3d_like(sun3d_test_pairs):
 @pytest.mark.slow
 def test_plane_sweep_with_true_motion_finds_the_depth_of_a_rendered_scene(sun3d_like):
     low, high = sun3d_like
-    rows, _ = evaluate_baseline("base_oracle", low, BaselineConfig(), inputs=high)
+    rows, _ = evaluate_baseline("base_oracle", low, BaselineConfig.default(), inputs=high)
     summary = summarize_baseline(rows)
     assert summary["n_failed"] == 0
     assert summary["rot_deg"] == 0 and summary["tran_deg"] < 1e-3
@@ -138,7 +138,7 @@ def test_plane_sweep_with_true_motion_finds_the_depth_of_a_rendered_scene(sun3d_
 def test_base_ff_and_base_sift_on_rendered_pairs(sun3d_like, sun3d_test_pairs):
     low, _ = sun3d_like
     for method in ("base_ff", "base_sift"):
-        rows, _ = evaluate_baseline(method, low, BaselineConfig(), keep=1)
+        rows, _ = evaluate_baseline(method, low, BaselineConfig.default(), keep=1)
         assert len(rows) == len(low)
         for row in rows:  # a result or a recorded failure (too few matches at 128x96), never a crash
             assert row["failed"] or (math.isfinite(row["rot_deg"]) and math.isfinite(row["l1_inv"]))
@@ -152,7 +152,7 @@ def test_base_ff_and_base_sift_on_rendered_pairs(sun3d_like, sun3d_test_pairs):
 
     all_pairs, _, tri = sun3d_test_pairs
     moderate = next(i for i, t in enumerate(tri) if 1.5 <= t < 3)
-    row = evaluate_baseline("base_ff", Subset(all_pairs, [moderate]), BaselineConfig())[0][0]
+    row = evaluate_baseline("base_ff", Subset(all_pairs, [moderate]), BaselineConfig.default())[0][0]
     assert not row["failed"] and row["rot_deg"] < 1 and row["tran_deg"] < 25, row
 
 
@@ -177,7 +177,7 @@ def test_degenerate_pairs_are_recorded_failures(sun3d_like):
             return s
 
     for method in ("base_ff", "base_sift", "base_5pt", "base_oracle"):
-        rows, _ = evaluate_baseline(method, Degenerate(), BaselineConfig())
+        rows, _ = evaluate_baseline(method, Degenerate(), BaselineConfig.default())
         summary = summarize_baseline(rows)
         assert summary["n_samples"] == 2
         assert summary["n_failed"] >= 1, (method, rows)
@@ -216,7 +216,7 @@ def test_each_baseline_recovers_a_known_motion(known_motion_pair, method):
     """Rotation within 1 degree and translation direction within 5 degrees on a textured scene
     (base_mat_f is given the exact flow in place of DeMoN's)."""
     s = known_motion_pair
-    cfg = BaselineConfig()
+    cfg = BaselineConfig.default()
     if method == "base_mat_f":
         out = M.base_mat_f(s, cfg, s["flow"])
     else:
@@ -227,7 +227,7 @@ def test_each_baseline_recovers_a_known_motion(known_motion_pair, method):
 
 def test_base_oracle_recovers_the_depth_of_a_textured_scene():
     s = controlled_pair("synthetic_sun3d", 0)
-    out = M.base_oracle(s, BaselineConfig())
+    out = M.base_oracle(s, BaselineConfig.default())
     truth = {"inv_depth": s["inv_depth"][0], "motion": s["motion"], "intrinsics": s["intrinsics"]}
     scores = metrics.evaluate_sample(out, truth)
     assert scores["l1_rel"] < 0.05 and scores["rot_deg"] == 0 and scores["tran_deg"] < 1e-3, scores
@@ -267,17 +267,17 @@ def test_baselines_read_each_pair_at_baseline_size_and_score_on_the_chains_groun
     from torch.utils.data import Subset
 
     pick = [0, 1]
-    rows, kept = evaluate_baseline("base_oracle", Subset(low, pick), BaselineConfig(), inputs=Subset(high, pick),
-                                   keep=1)
+    rows, kept = evaluate_baseline("base_oracle", Subset(low, pick), BaselineConfig.default(),
+                                   inputs=Subset(high, pick), keep=1)
     for i, row in zip(pick, rows, strict=True):
-        pred = M.base_oracle(high[i], BaselineConfig())
+        pred = M.base_oracle(high[i], BaselineConfig.default())
         assert pred["inv_depth"].shape == (192, 256)
         truth = metrics.ground_truth(low[i], low)
         truth.pop("flow")
         assert row["l1_inv"] == metrics.evaluate_sample(pred, truth, **metrics.protocol(low))["l1_inv"]
     assert kept[0]["inv_depth"].shape == (96, 128)  # shown beside the chain's image 1
     with pytest.raises(ValueError, match="inputs: expected the 2 pairs"):
-        evaluate_baseline("base_ff", Subset(low, pick), BaselineConfig(), inputs=high)
+        evaluate_baseline("base_ff", Subset(low, pick), BaselineConfig.default(), inputs=high)
 
 
 def test_a_baseline_job_reads_its_pairs_at_baseline_size(sun3d_test_pairs, monkeypatch):
@@ -362,10 +362,11 @@ def test_each_baseline_uses_view_2s_own_intrinsics(sun3d_pair, method):
     recovered (0.03-0.66 degrees of rotation measured, docs/results.md). Read with view 1's camera
     for both views it is off by 4.5-5 degrees (what the baselines did before)."""
     s = zoomed_view2(sun3d_pair)
-    errors = metrics.motion_errors(getattr(M, method)(s, BaselineConfig())["motion"], s["motion"].numpy())
+    errors = metrics.motion_errors(getattr(M, method)(s, BaselineConfig.default())["motion"], s["motion"].numpy())
     assert errors["rot_deg"] < 1.0 and errors["tran_deg"] < 8.0, errors
     one_camera = {**s, "intrinsics2": s["intrinsics"]}
-    wrong = metrics.motion_errors(getattr(M, method)(one_camera, BaselineConfig())["motion"], s["motion"].numpy())
+    cfg = BaselineConfig.default()
+    wrong = metrics.motion_errors(getattr(M, method)(one_camera, cfg)["motion"], s["motion"].numpy())
     print(f"\n{method}, SUN3D pair, view 2 zoomed 1.2: rot/tran {errors['rot_deg']:.2f}/{errors['tran_deg']:.2f} deg "
           f"with each view's intrinsics, {wrong['rot_deg']:.2f}/{wrong['tran_deg']:.2f} with view 1's for both")
     assert wrong["rot_deg"] > 3.0, (errors, wrong)
@@ -376,7 +377,7 @@ def test_base_oracle_uses_view_2s_own_intrinsics():
     finds the depth; sweeping with view 1's camera for both views, its L1-rel is over 10 times as large."""
     s = zoomed_view2(controlled_pair("synthetic_sun3d", 0), 0.85)
     truth = {"inv_depth": s["inv_depth"][0], "motion": s["motion"], "intrinsics": s["intrinsics"]}
-    cfg = BaselineConfig(sweep_hypotheses=64)  # (160 by default: a finer sweep, at 2.5 times the time)
+    cfg = BaselineConfig.default(sweep_hypotheses=64)  # (160 by default: a finer sweep, at 2.5 times the time)
     scores = metrics.evaluate_sample(M.base_oracle(s, cfg), truth)
     assert scores["l1_rel"] < 0.15, scores
     wrong = metrics.evaluate_sample(M.base_oracle({**s, "intrinsics2": s["intrinsics"]}, cfg), truth)
@@ -392,7 +393,7 @@ def test_base_5pt_on_the_real_sun3d_pair_at_its_native_size(sun3d_pair):
     methods' at this width) costs the 5-point RANSAC a few times that translation error."""
     s = sun3d_pair
     assert tuple(s["image1"].shape[1:]) == (480, 640)
-    cfg = BaselineConfig()
+    cfg = BaselineConfig.default()
     five = M.base_5pt(s, cfg)
     e5 = metrics.motion_errors(five["motion"], s["motion"].numpy())
     assert e5["rot_deg"] < 1.0 and e5["tran_deg"] < 8.0, e5
@@ -467,8 +468,28 @@ def test_the_sift_methods_follow_a_turn_of_14_degrees_on_a_real_pair(sun3d_pair)
     k1, k2 = s["intrinsics"][None].double(), s["intrinsics2"][None].double()
     flow = geo.flow_from_depth_motion(s["inv_depth"][None].double(), s["motion"][None].double(), k1, k2)[0]
     length = torch.hypot(flow[0] * 640, flow[1] * 480)
-    found = {m: metrics.motion_errors(getattr(M, m)(s, BaselineConfig())["motion"], s["motion"].numpy())
+    found = {m: metrics.motion_errors(getattr(M, m)(s, BaselineConfig.default())["motion"], s["motion"].numpy())
              for m in ("base_sift", "base_5pt", "base_ff")}
     print(f"\nSUN3D pair, camera 2 turned 14.4 deg (median flow {length[s['inv_depth'][0] > 0].median():.0f} px), "
           "rot/tran (deg): " + ", ".join(f"{m} {e['rot_deg']:.2f}/{e['tran_deg']:.2f}" for m, e in found.items()))
     assert found["base_sift"]["rot_deg"] < 1.5 and found["base_5pt"]["rot_deg"] < 1.5, found
+
+
+@pytest.mark.parametrize("values, message", [
+    ({"sweep_window": 4}, "baseline.sweep_window: expected an odd integer, got 4"),
+    ({"dis_preset": "slow"}, "baseline.dis_preset: expected one of ultrafast, fast, medium, got 'slow'"),
+    ({"sift_ratio": 1.0}, "baseline.sift_ratio: expected a number in (0, 1), got 1.0"),
+    ({"min_matches": 4}, "baseline.min_matches: expected an integer >= 8, got 4"),
+])
+def test_the_baselines_parameters_are_checked_where_they_are_built_with_the_configs_defaults(values, message):
+    """BaselineConfig's defaults are conf/baseline/default.yaml's (written nowhere else); a value out of
+    its range is refused by the constructor, in the line the job prints."""
+    from omegaconf import OmegaConf
+
+    from demon_lab.resources import CONF
+
+    yaml = OmegaConf.to_container(OmegaConf.load(CONF / "baseline" / "default.yaml"))
+    assert {k: v for k, v in vars(BaselineConfig.default()).items() if k != "seed"} == yaml
+    with pytest.raises(ValueError) as e:
+        BaselineConfig.default(**values)
+    assert str(e.value) == message

@@ -57,22 +57,62 @@ the 8-point methods' threshold at 640x480, against it)."""
 
 @dataclass(frozen=True)
 class BaselineConfig:
-    """Parameters of the baselines (``conf/baseline/default.yaml``); pixel values at width 256."""
+    """Parameters of the baselines; pixel values at width 256. Their defaults are written once, in
+    ``conf/baseline/default.yaml`` (:meth:`default`); a value out of its range is a ValueError naming
+    the key (``baseline.KEY: ...``, the job's one line)."""
 
-    dis_preset: str = "medium"
-    dis_finest_scale: int = 0
-    dis_iterations: int = 25
-    fb_threshold_px: float = 1.0
-    ransac_threshold_px: float = 1.0
-    ransac_iterations: int = 1000
-    max_correspondences: int = 2000
-    sift_ratio: float = 0.8
-    min_matches: int = 16
-    sweep_hypotheses: int = 160
-    sweep_window: int = 7
-    sweep_max_disparity: float = 0.6
-    size: Any = "native"  # the resolution the pairs are read at: demon_lab.pipeline.evaluate reads them
-    seed: int = 0
+    dis_preset: str
+    dis_finest_scale: int
+    dis_iterations: int
+    fb_threshold_px: float
+    ransac_threshold_px: float
+    ransac_iterations: int
+    max_correspondences: int
+    sift_ratio: float
+    min_matches: int
+    sweep_hypotheses: int
+    sweep_window: int
+    sweep_max_disparity: float
+    size: Any  # "native" or [H, W]: the resolution the pairs are read at (demon_lab.pipeline.evaluate reads them)
+    seed: int = 0  # the job's seed (RANSAC's and the correspondences' draws)
+
+    @classmethod
+    def default(cls, **values: Any) -> BaselineConfig:
+        """The defaults of ``conf/baseline/default.yaml``, with ``values`` instead where given."""
+        from omegaconf import OmegaConf
+
+        from demon_lab.resources import CONF
+
+        return cls(**{**OmegaConf.to_container(OmegaConf.load(CONF / "baseline" / "default.yaml")), **values})
+
+    def __post_init__(self) -> None:
+        def integer(key: str, minimum: int) -> int:
+            value = getattr(self, key)
+            if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
+                raise ValueError(f"baseline.{key}: expected an integer >= {minimum}, got {value!r}")
+            return value
+
+        if self.dis_preset not in DIS_PRESETS:
+            raise ValueError(f"baseline.dis_preset: expected one of {', '.join(DIS_PRESETS)}, got {self.dis_preset!r}")
+        for key in ("fb_threshold_px", "ransac_threshold_px", "sift_ratio", "sweep_max_disparity"):
+            value = getattr(self, key)
+            if isinstance(value, bool) or not isinstance(value, int | float) or value <= 0:
+                raise ValueError(f"baseline.{key}: expected a positive number, got {value!r}")
+        if self.sift_ratio >= 1:
+            raise ValueError(f"baseline.sift_ratio: expected a number in (0, 1), got {self.sift_ratio}")
+        for key, minimum in (("dis_finest_scale", 0), ("dis_iterations", 1), ("ransac_iterations", 1),
+                             ("max_correspondences", 8), ("min_matches", 8), ("sweep_hypotheses", 2)):
+            integer(key, minimum)
+        size = self.size
+        if size != "native" and not (isinstance(size, list | tuple) and len(size) == 2
+                                     and all(isinstance(v, int) and not isinstance(v, bool) and v >= 32 for v in size)):
+            raise ValueError(f"baseline.size: expected native or [H, W] with sides >= 32 pixels, got {size}")
+        if integer("sweep_window", 1) % 2 == 0:
+            raise ValueError(f"baseline.sweep_window: expected an odd integer, got {self.sweep_window}")
+
+
+DIS_PRESETS = ("ultrafast", "fast", "medium")
+"""OpenCV's DIS optical flow presets (``baseline.dis_preset``)."""
 
 
 def _subsample(n: int, limit: int, seed: int) -> np.ndarray:

@@ -133,25 +133,14 @@ TRACKING_SCHEMES = ("sqlite", "http", "https", "postgresql", "mysql", "mssql", "
 METHODS = ("demon", *BASELINES)
 
 
-def _baseline(node: DictConfig) -> None:
-    expect_choice("baseline.dis_preset", node.dis_preset, ("ultrafast", "fast", "medium"))
-    for key in ("fb_threshold_px", "ransac_threshold_px", "sift_ratio", "sweep_max_disparity"):
-        expect_positive(f"baseline.{key}", node[key])
-    if node.sift_ratio >= 1:
-        raise ConfigError(f"baseline.sift_ratio: expected a number in (0, 1), got {node.sift_ratio}")
-    expect_int("baseline.dis_finest_scale", node.dis_finest_scale, 0)
-    expect_int("baseline.dis_iterations", node.dis_iterations, 1)
-    expect_int("baseline.ransac_iterations", node.ransac_iterations, 1)
-    expect_int("baseline.max_correspondences", node.max_correspondences, 8)
-    expect_int("baseline.min_matches", node.min_matches, 8)
-    expect_int("baseline.sweep_hypotheses", node.sweep_hypotheses, 2)
-    size = node.size
-    if size != "native" and not (OmegaConf.is_list(size) and len(size) == 2
-                                 and all(isinstance(v, int) and not isinstance(v, bool) and v >= 32 for v in size)):
-        raise ConfigError(f"baseline.size: expected native or [H, W] with sides >= 32 pixels, got {size}")
-    window = expect_int("baseline.sweep_window", node.sweep_window, 1)
-    if window % 2 == 0:
-        raise ConfigError(f"baseline.sweep_window: expected an odd integer, got {window}")
+def _baseline(cfg: DictConfig) -> None:
+    """``baseline``: its rules are :class:`demon_lab.baselines.methods.BaselineConfig`'s (one line)."""
+    from demon_lab.baselines.methods import BaselineConfig
+
+    try:
+        BaselineConfig(**OmegaConf.to_container(cfg.baseline, resolve=True), seed=cfg.seed)
+    except (TypeError, ValueError) as e:
+        raise ConfigError(str(e).splitlines()[0]) from None
 
 
 def _execution(cfg: DictConfig, here: bool = True) -> None:
@@ -198,7 +187,7 @@ def validate(cfg: DictConfig, here: bool = True) -> None:
     if cfg.method != "demon" and cfg.oracle is not None:
         raise ConfigError(f"oracle: expected null with method={cfg.method} (oracles feed the DeMoN chain), "
                           f"got {cfg.oracle!r}")
-    _baseline(cfg.baseline)
+    _baseline(cfg)
     expect_choice("force", cfg.force, (True, False))
     expect_choice("train", cfg.train, (True, False))
     expect_choice("model.variant", cfg.model.variant, ("v1", "v2"))
