@@ -613,21 +613,19 @@ def test_flow_order_ranks_samples_by_their_mean_flow():
 
 
 def test_datamodule_batches_a_mix(tmp_path):
-    from demon_lab.data.datamodule import DemonDataModule
+    from demon_lab.data.datamodule import DemonDataModule, Draws
 
     common = dict(size=(32, 64), cache_dir=tmp_path)
     train = [{"weight": 1.0, "dataset": SyntheticDataset("synthetic_sun3d", "train", length=4, augment=True, **common)},
              {"weight": 1.0, "dataset": MiddleburyDataset(size=(32, 64), augment=True)}]
-    dm = DemonDataModule(train=train, test=[SyntheticDataset("synthetic_mvs", "test", length=2, **common)],
-                         batch_size=4, samples_per_epoch=8, seed=3)
+    draws = Draws(batch_size=4, samples_per_epoch=8, seed=3)
+    dm = DemonDataModule(train, draws)
     batch = next(iter(dm.train_dataloader()))
     assert batch["image1"].shape == (4, 3, 32, 64) and batch["motion"].shape == (4, 6)
     assert torch.allclose(batch["motion"][:, 3:].norm(dim=1), torch.ones(4))  # normalised
     assert len(batch["id"]) == 4
-    again = next(iter(DemonDataModule(train=train, batch_size=4, samples_per_epoch=8, seed=3).train_dataloader()))
+    again = next(iter(DemonDataModule(train, draws).train_dataloader()))
     assert torch.equal(batch["image1"], again["image1"])
-    (test_loader,) = dm.test_dataloader()
-    assert dm.test_names == ["synthetic_mvs"] and next(iter(test_loader))["image1"].shape[0] == 2
 
 
 def test_every_data_config_composes(tmp_path):
@@ -927,11 +925,11 @@ def test_fresh_scenes_render_new_scenes_of_the_next_seeds_in_the_loaders_worker(
     """DemonDataModule(fresh_scenes=0.25) over a 3-scene synthetic set: the set's draws reach scenes
     past its own three (the next seeds of its split, the scenes a longer set has at those indices),
     rendered by the loader's worker and cached beside the others; the layers lead keeps its own keys."""
-    from demon_lab.data.datamodule import DemonDataModule
+    from demon_lab.data.datamodule import DemonDataModule, Draws
 
     scenes = SyntheticDataset("synthetic_sun3d", length=3, size=(64, 64), cache_dir=tmp_path)
-    module = DemonDataModule(train=[{"weight": 1.0, "dataset": scenes}], batch_size=2, num_workers=1,
-                             samples_per_epoch=24, fresh_scenes=0.25, layers_first=0.25, layers_size=(64, 64))
+    module = DemonDataModule([{"weight": 1.0, "dataset": scenes}], Draws(
+        batch_size=2, samples_per_epoch=24, fresh_scenes=0.25, layers_first=0.25, layers_size=(64, 64)), num_workers=1)
     loader = module.train_dataloader()
     drawn = [i for s, i, _ in module._sampler if s == 0]
     assert max(drawn) == 3 + 18 // 4 - 1 and len(scenes) == 3

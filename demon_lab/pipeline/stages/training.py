@@ -46,15 +46,15 @@ def build_datamodule(cfg: DictConfig, batch_size: int, samples: int, skip: int =
     stage's curriculum (MixtureSampler: the easiest samples first; fresh 2-D layers for the first part
     of the stage; new synthetic scenes at a steady rate per draw);
     ``pin_memory``: batches in page-locked memory (faster copies to a CUDA device)."""
-    from demon_lab.data.datamodule import DemonDataModule
+    from demon_lab.data.datamodule import DemonDataModule, Draws
     from demon_lab.pipeline.config import instantiate
 
     train = [{"weight": e.weight, "dataset": instantiate(e.dataset)} for e in cfg.data.train]
     world = world_size(cfg)
-    return DemonDataModule(train=train, batch_size=batch_size // world, num_workers=cfg.data.num_workers,
-                           samples_per_epoch=samples, seed=cfg.seed, skip=skip, rank=global_rank(cfg), world=world,
-                           easy_first=easy_first, pin_memory=pin_memory, layers_first=layers_first,
-                           layers_size=tuple(cfg.data.size), fresh_scenes=fresh_scenes)
+    draws = Draws(batch_size=batch_size // world, samples_per_epoch=samples, seed=int(cfg.seed), skip=skip,
+                  rank=global_rank(cfg), world=world, easy_first=None if easy_first is None else tuple(easy_first),
+                  layers_first=layers_first, layers_size=tuple(cfg.data.size), fresh_scenes=float(fresh_scenes))
+    return DemonDataModule(train, draws, num_workers=cfg.data.num_workers, pin_memory=pin_memory)
 
 
 def train_stage(cfg: DictConfig, chain: DeMoN, stage: StageDir, logger: L.pytorch.loggers.Logger | None,
