@@ -175,11 +175,12 @@ def first_ids(runs: pd.DataFrame) -> list[str]:
 
 def commits(used: pd.DataFrame) -> str:
     """The code commits the counted runs were made with (as MLflow tagged them)."""
+    installed = "not recorded (runs of an installed package, not a checkout)"
     if COMMIT_TAG not in used.columns:
-        return "not recorded (runs of an installed package, not a checkout)"
+        return installed
     found = used[COMMIT_TAG].dropna().unique()
     lacking = int(used[COMMIT_TAG].isna().sum())
-    text = ", ".join(c[:12] for c in sorted(found)) or "none recorded"
+    text = ", ".join(c[:12] for c in sorted(found)) or installed
     return text + (f"; {lacking} run(s) of an installed package, not a checkout" if lacking and len(found) else "")
 
 
