@@ -31,6 +31,30 @@ SWEEPER = "demon_lab_sweeper"
 """demon_lab's sweeper plugin, a module of Hydra's ``hydra_plugins`` namespace."""
 
 
+def _split(args: Sequence[str]) -> tuple[bool, list[str]]:
+    """``ARGS`` of :func:`check` or :func:`sweep_jobs`: whether it is a sweep (``-m``), and its overrides."""
+    overrides = [a for a in args if a not in ("-m", "--multirun")]
+    flags = [a for a in overrides if a.startswith("-")]
+    if flags:
+        raise ValueError(f"only overrides and -m, got {flags}")
+    return len(overrides) < len(args), overrides
+
+
+def _primary(loader, overrides: list[str], multirun: bool):
+    """The command's primary config, composed by Hydra's config loader as ``python -m demon_lab`` composes it."""
+    from hydra.types import RunMode
+
+    mode = RunMode.MULTIRUN if multirun else RunMode.RUN
+    return loader.load_configuration(CONFIG_NAME, [*overrides, f"hydra.mode={mode.name}"], mode)
+
+
+def _batches(loader, primary) -> list[list[list[str]]]:
+    """A sweep's jobs in batches, as its sweeper expands them (``hydra.sweeper.params``, then the command line)."""
+    from demon_lab.app.sweeper import Sweeper
+
+    return Sweeper.batches(primary.hydra.sweeper.get("params"), primary.hydra.overrides.task, loader)
+
+
 def check(args: Sequence[str]) -> str | None:
     """None if every job of ``python -m demon_lab ARGS`` composes and validates, else the line that
     says why. ``ARGS``: overrides, with ``-m`` (``--multirun``) for a sweep; each job is composed by
@@ -38,25 +62,18 @@ def check(args: Sequence[str]) -> str | None:
     from hydra import initialize_config_dir
     from hydra.core.global_hydra import GlobalHydra
     from hydra.errors import HydraException
-    from hydra.types import RunMode
     from omegaconf.errors import OmegaConfBaseException
 
-    from demon_lab.app.sweeper import Sweeper, check_job, check_sweep, one_line
+    from demon_lab.app.sweeper import check_job, check_sweep, one_line
     from demon_lab.pipeline.config import ConfigError
 
-    multirun = any(a in ("-m", "--multirun") for a in args)
-    overrides = [a for a in args if a not in ("-m", "--multirun")]
-    flags = [a for a in overrides if a.startswith("-")]
-    if flags:
-        raise ValueError(f"check: only overrides and -m, got {flags}")
-    mode = RunMode.MULTIRUN if multirun else RunMode.RUN
+    multirun, overrides = _split(args)
     with initialize_config_dir(CONF, version_base="1.3"):
         loader = GlobalHydra.instance().config_loader()
         try:
-            primary = loader.load_configuration(CONFIG_NAME, [*overrides, f"hydra.mode={mode.name}"], mode)
+            primary = _primary(loader, overrides, multirun)
             if multirun:
-                batches = Sweeper.batches(primary.hydra.sweeper.get("params"), primary.hydra.overrides.task, loader)
-                return check_sweep(primary, loader, batches)
+                return check_sweep(primary, loader, _batches(loader, primary))
             check_job(primary, primary.hydra.runtime.choices.get("hydra/launcher") or "basic", multirun=False)
         except ConfigError as e:
             return str(e)
@@ -70,15 +87,11 @@ def sweep_jobs(args: Sequence[str]) -> list[list[str]]:
     them (``hydra.sweeper.params``, then the command line)."""
     from hydra import initialize_config_dir
     from hydra.core.global_hydra import GlobalHydra
-    from hydra.types import RunMode
 
-    from demon_lab.app.sweeper import Sweeper
-
-    overrides = [a for a in args if a not in ("-m", "--multirun")]
+    _, overrides = _split(args)
     with initialize_config_dir(CONF, version_base="1.3"):
         loader = GlobalHydra.instance().config_loader()
-        primary = loader.load_configuration(CONFIG_NAME, [*overrides, "hydra.mode=MULTIRUN"], RunMode.MULTIRUN)
-        batches = Sweeper.batches(primary.hydra.sweeper.get("params"), primary.hydra.overrides.task, loader)
+        batches = _batches(loader, _primary(loader, overrides, multirun=True))
     return [job for batch in batches for job in batch]
 
 

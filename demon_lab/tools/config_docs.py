@@ -199,11 +199,10 @@ def stages_table() -> list[str]:
 
 
 def page() -> str:
-    cfg, choices = _composed()
-    from omegaconf import OmegaConf, open_dict
+    from omegaconf import OmegaConf
 
-    with open_dict(cfg):
-        job = OmegaConf.masked_copy(cfg, [k for k in cfg if k != "hydra"])
+    cfg, choices = _composed()
+    job = OmegaConf.masked_copy(cfg, [k for k in cfg if k != "hydra"])
     return "\n".join([
         "# Configuration reference",
         "",
