@@ -348,6 +348,22 @@ def test_runs_carry_mlflow_source_tags_and_a_resumed_run_is_re_tagged(tmp_path):
     assert f"{TAG}git_commit" not in tags
 
 
+
+def test_a_resumed_run_keeps_its_first_parameters_and_tags_the_values_that_changed(tmp_path):
+    """MLflow refuses to change a logged parameter; a job resumed from another install (package data
+    at another path, outside the run key) keeps the first values, tags the new ones, adds new keys."""
+    from demon_lab.pipeline.tracking import TAG, Tracker
+
+    tracker = Tracker(f"sqlite:///{tmp_path}/mlflow.db", "default", str(tmp_path / "artifacts"))
+    run_id = tracker.start("job", {f"{TAG}run_key": "k0"})
+    tracker.log_params(run_id, {"data.real_pair": "/old/site-packages/pair", "seed": "0"})
+    tracker.resume(run_id)
+    tracker.log_params(run_id, {"data.real_pair": "/new/site-packages/pair", "seed": "0", "threads": "2"})
+    data = tracker.client.get_run(run_id).data
+    assert data.params == {"data.real_pair": "/old/site-packages/pair", "seed": "0", "threads": "2"}
+    assert data.tags[f"{TAG}resumed_param.data.real_pair"] == "/new/site-packages/pair"
+    assert f"{TAG}resumed_param.seed" not in data.tags
+
 def _pair_folder(tmp: Path, damage: str) -> Path:
     """A copy of the shipped SUN3D pair with one defect."""
     import shutil

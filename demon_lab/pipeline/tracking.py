@@ -232,9 +232,16 @@ class Tracker:
         return run.info.run_id
 
     def log_params(self, run_id: str, params: Mapping[str, str]) -> None:
+        """Log ``params`` on ``run_id``. A resumed run already holds its first job's parameters, and
+        MLflow refuses to change one: a parameter the resuming job sets to another value (one outside
+        the run key, such as the path of a package installed elsewhere) keeps its first value, and
+        the new value goes to the tag ``demon_lab.resumed_param.<name>``."""
         from mlflow.entities import Param
 
-        items = [Param(k, v) for k, v in params.items()]
+        logged = self.client.get_run(run_id).data.params
+        changed = {k: v for k, v in params.items() if k in logged and logged[k] != str(v)}
+        self.set_tags(run_id, {f"{TAG}resumed_param.{k}": v for k, v in changed.items()})
+        items = [Param(k, v) for k, v in params.items() if k not in logged]
         for i in range(0, len(items), 100):
             self.client.log_batch(run_id, params=items[i:i + 100])
 
