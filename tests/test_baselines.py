@@ -283,22 +283,21 @@ def test_baselines_read_each_pair_at_baseline_size_and_score_on_the_chains_groun
 def test_a_baseline_job_reads_its_pairs_at_baseline_size(sun3d_test_pairs, monkeypatch):
     """``evaluate_test_sets`` with a baseline method: the pairs reach the method at ``baseline.size``
     and are scored on the chain's test set."""
-    from omegaconf import OmegaConf
+    from omegaconf import OmegaConf, open_dict
 
-    from demon_lab import resources
     from demon_lab.pipeline import evaluate
+    from tests.test_pipeline import compose_config
 
     low, _, _ = sun3d_test_pairs
     seen = []
     real = M.base_oracle
     monkeypatch.setattr("demon_lab.baselines.base_oracle", lambda s, c: seen.append(s["image1"].shape) or real(s, c))
     entry = _test_entry(low)
-    for size, shape in (("native", (3, 192, 256)), ([96, 128], (3, 96, 128))):
-        cfg = OmegaConf.create({"method": "base_oracle", "seed": 0, "iterations": 3, "oracle": None,
-                                "data": {"test": [entry], "size": [96, 128]},
-                                "baseline": {**OmegaConf.to_container(OmegaConf.load(
-                                    resources.CONF / "baseline" / "default.yaml")), "size": size},
-                                "eval": {"visualize": 0, "point_clouds": 0, "max_samples": 1, "batch_size": 1}})
+    for size, shape in (("native", (3, 192, 256)), ("[96,128]", (3, 96, 128))):
+        cfg = compose_config(["scale=smoke", "method=base_oracle", "data.size=[96,128]", f"baseline.size={size}",
+                              "eval.visualize=0", "eval.point_clouds=0", "eval.max_samples=1", "eval.batch_size=1"])
+        with open_dict(cfg):
+            cfg.data.test = OmegaConf.create([entry])
         seen.clear()
         (result,) = evaluate.evaluate_test_sets(cfg, None, refined=False)
         assert seen == [shape] and result.summary["n_samples"] == 1 and result.summary["n_failed"] == 0, size
@@ -449,7 +448,7 @@ def test_the_baselines_study_runs_and_reports_every_method():
     from omegaconf import OmegaConf
 
     from demon_lab import resources
-    from demon_lab.pipeline.validate import METHODS as VALID
+    from demon_lab.pipeline.settings import METHODS as VALID
 
     assert "base_5pt" in M.METHODS and set(M.METHODS) <= set(VALID)
     sweep = OmegaConf.load(resources.CONF / "experiment" / "baselines.yaml").hydra.sweeper.params.method

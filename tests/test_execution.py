@@ -203,7 +203,7 @@ def test_a_baseline_job_ignores_the_chains_precision(tmp_path):
     overrides = ("precision=16-mixed", "trainer.accelerator=cpu")
     with pytest.raises(ConfigError, match="precision=16-mixed needs a CUDA device"):
         validate(compose_config(smoke_overrides(tmp_path, "method=demon", *overrides)))
-    assert validate(compose_config(smoke_overrides(tmp_path, "method=base_ff", *overrides))) is None
+    assert validate(compose_config(smoke_overrides(tmp_path, "method=base_ff", *overrides))).precision == "16-mixed"
 
 
 def _job(tmp, *extra):

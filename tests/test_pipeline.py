@@ -411,10 +411,9 @@ def test_checking_a_configuration_imports_neither_lightning_nor_mlflow():
 def test_each_stage_kind_carries_its_module_nets_oracles_and_scores_and_the_rate_schedules_are_implemented():
     from demon_lab.core.losses import WEIGHT_KEYS
     from demon_lab.nets.chain import ORACLES
-    from demon_lab.pipeline.schema import STAGE_SPECS
+    from demon_lab.pipeline.schema import LR_SCHEDULES, STAGE_SPECS
     from demon_lab.pipeline.stages import modules
     from demon_lab.pipeline.stages.base import StageModule, learning_rate
-    from demon_lab.pipeline.stages.schedule import LR_SCHEDULES
 
     nets = {"flow1", "dm1", "flow2", "dm2", "refine_net"}
     for kind, spec in STAGE_SPECS.items():  # its module takes every option it sets

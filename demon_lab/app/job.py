@@ -11,8 +11,6 @@ run id to the job in :data:`PARENT_RUN`, in the job's own process, just before t
 
 from __future__ import annotations
 
-import csv
-import io
 import json
 import logging
 import sys
@@ -25,6 +23,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from demon_lab.core.metrics import UNITS_NOTE
 from demon_lab.pipeline.config import ConfigError
+from demon_lab.pipeline.settings import JobSettings, TrackingSettings
 from demon_lab.pipeline.validate import CHAIN_METHODS, validate
 
 log = logging.getLogger(__name__)
@@ -72,11 +71,11 @@ def run(cfg: DictConfig) -> dict[str, Any]:
 
     for note in drop_missing_sources(cfg, cfg.train):
         log.info("%s", note)
-    validate(cfg)
-    if cfg.threads is not None:
+    job = validate(cfg)
+    if job.threads is not None:
         from demon_lab.core.execution import set_threads
 
-        set_threads(int(cfg.threads))
+        set_threads(job.threads)
     if cfg.method == "demon":
         from demon_lab.core.execution import global_rank, world_size
         from demon_lab.pipeline.stages.training import prepare_chain
@@ -89,7 +88,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
 
     key = run_key(cfg)
     tracker = Tracker(cfg.tracking.uri, cfg.experiment, cfg.tracking.artifact_dir,
-                      local_server=bool(cfg.tracking.get("server")))
+                      local_server=job.tracking.server is not None)
     if not cfg.force:
         existing = tracker.find_finished(key)
         if existing:
@@ -189,10 +188,11 @@ def _record(cfg: DictConfig, tracker, run_id: str, results: list, refined: bool)
     from demon_lab.reporting.tables import results_table
     from demon_lab.reporting.visualize import save_visuals
 
+    job = JobSettings.of(cfg)
     summary = {r.name: r.summary for r in results}
     tracker.log_metrics(run_id, {f"test/{name}/{k}": v for name, values in summary.items() for k, v in values.items()})
     if cfg.method == "demon":
-        passes = [*range(int(cfg.iterations) + 1), *(["refined"] if refined else [])]
+        passes = [*range(job.iterations + 1), *(["refined"] if refined else [])]
         if any(f"priors/{k}" in values for values in summary.values() for k in ("epe", "tran_deg")):
             passes = ["priors", *passes]  # the profile's priors alone, before the chain's passes
         what = f"{cfg.iterations} iterations{', oracle ' + str(cfg.oracle) if cfg.oracle else ''}"
@@ -203,7 +203,7 @@ def _record(cfg: DictConfig, tracker, run_id: str, results: list, refined: bool)
     with tempfile.TemporaryDirectory() as tmp:
         root = Path(tmp)
         for r in results:
-            save_visuals(root, r.name, r.kept, int(cfg.eval.visualize), int(cfg.eval.point_clouds), pictured)
+            save_visuals(root, r.name, r.kept, job.eval.visualize, job.eval.point_clouds, pictured)
         (root / "per_sample_metrics.csv").write_text(_csv([{"dataset": r.name, **row} for r in results
                                                             for row in r.rows]))
         (root / "pixel_errors.json").write_text(json.dumps({r.name: r.histogram for r in results}) + "\n")
@@ -217,15 +217,11 @@ def _record(cfg: DictConfig, tracker, run_id: str, results: list, refined: bool)
 
 
 def _csv(rows: list[dict[str, Any]]) -> str:
-    """Rows with the union of their keys as columns, in first-seen order (a missing value empty)."""
-    keys: list[str] = []
-    for r in rows:
-        keys += [k for k in r if k not in keys]
-    out = io.StringIO()
-    writer = csv.DictWriter(out, fieldnames=keys)
-    writer.writeheader()
-    writer.writerows(rows)
-    return out.getvalue()
+    """Rows with the union of their keys as columns, in first-seen order, written by pandas: each value
+    as given (a float to full precision), a missing or NaN value empty."""
+    import pandas as pd
+
+    return pd.DataFrame(rows, dtype=object).to_csv(index=False, na_rep="")
 
 
 def _hydra_output_dir(multirun_only: bool = False) -> Path | None:
@@ -306,7 +302,8 @@ def main_task(cfg: DictConfig) -> dict[str, Any] | None:
     try:
         from demon_lab.core.execution import global_rank
 
-        if cfg.tracking.get("server") and global_rank(cfg) == 0:  # DDP workers only train
+        settings = TrackingSettings.of(cfg.tracking, "tracking")
+        if settings.server is not None and global_rank(cfg) == 0:  # DDP workers only train
             from demon_lab.pipeline.tracking import LocalServer
 
             server = LocalServer(cfg.tracking.server)

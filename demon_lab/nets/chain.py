@@ -25,16 +25,57 @@ from torch import nn
 from demon_lab.core import geometry as geo
 from demon_lab.core import loss_maps, warping
 from demon_lab.core.execution import float32
-from demon_lab.nets.blocks import check_correlation, check_size, check_variant
+from demon_lab.nets.blocks import VARIANTS, check_correlation, check_size
 from demon_lab.nets.depth_motion_net import DepthMotion, DepthMotionNet
 from demon_lab.nets.flow_net import FlowNet
-from demon_lab.nets.prior import RANSAC_SETTINGS, check_prior, ransac_motion
+from demon_lab.nets.prior import CHOICES as PRIOR_CHOICES
+from demon_lab.nets.prior import RANSAC_SETTINGS, ransac_motion
 from demon_lab.nets.refine_net import RefineNet
 
 ORACLES = (None, "flow", "depth_motion")
 COMPATS = (None, "demon_original")
 """``DeMoN(compat=...)``: None (demon_lab's inputs, docs/reference.md §11) or DeMoN's released graph exactly."""
 
+
+
+def _choices(values: tuple) -> str:
+    return ", ".join("null" if v is None else str(v) for v in values)
+
+
+def check_options(variant: str, width: float, compat: str | None, correlation, priors: dict[str, str | None],
+                  prefix: str = "") -> None:
+    """The rules of the chain's options, one ValueError line naming the option (``prefix`` + its name:
+    ``model.`` where a config sets them): the variant and compat, a positive width, the correlation
+    front, each prior's choices, ``ransac_prior``'s flow1 prior, and DeMoN's released graph
+    (``compat=demon_original``) with neither a correlation front nor priors."""
+    p = prefix
+    if variant not in VARIANTS:
+        raise ValueError(f"{p}variant: expected one of {_choices(VARIANTS)}, got {variant!r}")
+    if isinstance(width, bool) or not isinstance(width, int | float) or not width > 0:
+        raise ValueError(f"{p}width: expected a positive number, got {width!r}")
+    if compat not in COMPATS:
+        raise ValueError(f"{p}compat: expected one of {_choices(COMPATS)}, got {compat!r}")
+    if compat == "demon_original" and variant != "v1":
+        raise ValueError(f"{p}compat: demon_original reproduces DeMoN's released v1 graph; it needs {p}variant=v1, "
+                         f"got {variant}")
+    if correlation is not None:
+        try:
+            check_correlation(correlation)
+        except ValueError as e:
+            raise ValueError(f"{p}{e}") from None
+        if compat == "demon_original":
+            raise ValueError(f"{p}correlation: compat=demon_original reproduces DeMoN's released graph, which has "
+                             f"no correlation front; leave {p}correlation null")
+    for key, value in priors.items():
+        if value not in PRIOR_CHOICES[key]:
+            raise ValueError(f"{p}{key}: expected one of {_choices(PRIOR_CHOICES[key])}, got {value!r}")
+    if priors["dm1_prior"] == "ransac_prior" and priors["flow1_prior"] is None:
+        raise ValueError(f"{p}dm1_prior: ransac_prior reads flow1's classical prior flow; set {p}flow1_prior "
+                         f"(dis or dis_x2)")
+    for key, value in priors.items():
+        if value is not None and compat == "demon_original":
+            raise ValueError(f"{p}{key}: compat=demon_original reproduces DeMoN's released graph, whose nets have "
+                             f"no priors; leave {p}{key} null")
 
 @dataclass
 class Prediction:
@@ -161,37 +202,24 @@ class DeMoN(nn.Module):
                  flow1_prior: str | None = None, dm1_prior: str | None = None, flow2_prior: str | None = None,
                  dm2_prior: str | None = None):
         super().__init__()
-        check_variant(variant)
+        check_options(variant, width, compat, correlation,
+                      dict(flow1_prior=flow1_prior, dm1_prior=dm1_prior, flow2_prior=flow2_prior, dm2_prior=dm2_prior))
         check_size(*size)
-        if not width > 0:
-            raise ValueError(f"width: expected a positive multiplier, got {width}")
-        if compat not in COMPATS:
-            raise ValueError(f"compat: expected one of {COMPATS}, got {compat!r}")
-        if compat == "demon_original" and variant != "v1":
-            raise ValueError("compat='demon_original' reproduces DeMoN's released v1 graph: it needs variant='v1'")
-        if compat == "demon_original" and correlation is not None:
-            raise ValueError("compat='demon_original' reproduces DeMoN's released graph, which has no "
-                             "correlation front")
-        if compat == "demon_original" and (flow1_prior, dm1_prior, flow2_prior, dm2_prior) != (None,) * 4:
-            raise ValueError("compat='demon_original' reproduces DeMoN's released graph, whose nets "
-                             "have no priors")
         self.variant, self.width, self.size, self.compat = variant, width, tuple(size), compat
         self.correlation = None if correlation is None else check_correlation(correlation)
         kw = dict(variant=variant, width=width, size=self.size)
-        self.flow1_prior = check_prior(flow1_prior)
+        self.flow1_prior = flow1_prior
         self.flow1 = FlowNet(iterative=False, correlation=self.correlation, prior=self.flow1_prior, **kw)
-        self.dm1_prior = check_prior(dm1_prior, "dm1_prior")
-        if self.dm1_prior == "ransac_prior" and not self.flow1_prior:
-            raise ValueError("dm1_prior='ransac_prior' reads flow1's classical prior flow: it needs a flow1_prior")
+        self.dm1_prior = dm1_prior
         self.dm1 = DepthMotionNet(iterative=self.dm1_prior is not None, **kw)  # + the depth from the prior
-        self.flow2_prior = check_prior(flow2_prior, "flow2_prior")
+        self.flow2_prior = flow2_prior
         self.flow2 = FlowNet(iterative=True, correlation=self.correlation, **kw)
         if self.flow2_prior:  # the correction of the previous flow starts at none
             with torch.no_grad():
                 for head in (self.flow2.predict_flow5, self.flow2.predict_flow2):
                     head.out.conv.weight[:2].zero_()
                     head.out.conv.bias[:2].zero_()
-        self.dm2_prior = check_prior(dm2_prior, "dm2_prior")
+        self.dm2_prior = dm2_prior
         self.dm2 = DepthMotionNet(iterative=True, **kw)
         for net, prior in ((self.dm1, self.dm1_prior), (self.dm2, self.dm2_prior)):
             if prior:  # the correction of the prior motion starts at none

@@ -25,6 +25,7 @@ from torch.utils.data import DataLoader
 
 from demon_lab.core import execution, metrics, scoring
 from demon_lab.nets.chain import ChainOutput, DeMoN
+from demon_lab.pipeline.settings import JobSettings
 
 log = logging.getLogger(__name__)
 
@@ -130,39 +131,38 @@ def evaluate_test_sets(cfg, chain: DeMoN | None, refined: bool) -> list[TestSetR
     from demon_lab.baselines import summarize_baseline
     from demon_lab.pipeline.config import instantiate
 
-    keep = max(int(cfg.eval.visualize), int(cfg.eval.point_clouds))
-    if cfg.method == "demon" and chain is not None:  # on the device it trained on (Lightning hands it back on the CPU)
+    job = JobSettings.of(cfg)
+    keep = max(job.eval.visualize, job.eval.point_clouds)
+    if job.method == "demon" and chain is not None:  # on the device it trained on (Lightning hands it back on the CPU)
         chain = chain.to(execution.evaluation_device(cfg))
     results = []
-    for entry in cfg.data.test:
+    for entry in job.data.test:
         dataset = instantiate(entry)
         log.info("evaluating on %s (%d pairs)", dataset.name, len(dataset))
         histogram = metrics.PixelHistogram()
-        if cfg.method == "demon":
-            rows, kept = evaluate_dataset(chain, dataset, int(cfg.iterations), cfg.oracle, int(cfg.eval.batch_size),
-                                          cfg.eval.max_samples, keep=keep, refined=refined, histogram=histogram,
-                                          precision=cfg.precision,
-                                          channels_last=cfg.model.channels_last)
-            summary = summarize(rows, int(cfg.iterations))
+        if job.method == "demon":
+            rows, kept = evaluate_dataset(chain, dataset, job.iterations, job.oracle, job.eval.batch_size,
+                                          job.eval.max_samples, keep=keep, refined=refined, histogram=histogram,
+                                          precision=job.precision, channels_last=job.model.channels_last)
+            summary = summarize(rows, job.iterations)
         else:
-            rows, kept = _evaluate_baseline(cfg, entry, dataset, chain, keep, histogram)
+            rows, kept = _evaluate_baseline(job, entry, dataset, chain, keep, histogram)
             summary = summarize_baseline(rows)
         results.append(TestSetResult(dataset.name, rows, summary, histogram.to_dict(), kept))
     return results
 
 
-def _evaluate_baseline(cfg, entry, dataset, chain: DeMoN | None, keep: int, histogram: metrics.PixelHistogram):
+def _evaluate_baseline(job: JobSettings, entry, dataset, chain: DeMoN | None, keep: int,
+                       histogram: metrics.PixelHistogram):
     """A classical baseline on one test set: it reads each pair at ``baseline.size`` (the source's
     native resolution by default; ``base_mat_f``, which reads the chain's flow, at the chain's) and is
     scored on the same ground truth as the chain."""
-    from omegaconf import OmegaConf
+    from demon_lab.baselines import evaluate_baseline
 
-    from demon_lab.baselines import BaselineConfig, evaluate_baseline
-
-    params = BaselineConfig(**{**OmegaConf.to_container(cfg.baseline, resolve=True), "seed": int(cfg.seed)})
-    inputs = None if cfg.method == "base_mat_f" else baseline_inputs(entry, dataset, params.size)
-    return evaluate_baseline(cfg.method, dataset, params, chain=chain, iterations=int(cfg.iterations),
-                             inputs=inputs, max_samples=cfg.eval.max_samples, keep=keep,
+    params = job.baseline
+    inputs = None if job.method == "base_mat_f" else baseline_inputs(entry, dataset, params.size)
+    return evaluate_baseline(job.method, dataset, params, chain=chain, iterations=job.iterations,
+                             inputs=inputs, max_samples=job.eval.max_samples, keep=keep,
                              histogram=histogram)
 
 

@@ -29,6 +29,8 @@ from omegaconf import DictConfig, OmegaConf
 from demon_lab.core.losses import DEPTH_MOTION_WEIGHTS, FLOW_SIG_WEIGHTS, FLOW_WEIGHTS, REFINE_WEIGHTS
 from demon_lab.pipeline.config import ConfigError, expect_choice, expect_fraction, expect_int, expect_positive
 
+LR_SCHEDULES = ("released", "supplementary")
+"""``schedule.lr_schedule``: :func:`demon_lab.pipeline.stages.base.learning_rate` implements both."""
 PRIOR_KEYS = ("flow1_prior", "dm1_prior", "flow2_prior", "dm2_prior")
 """The model options that give a net a prior (:mod:`demon_lab.nets.prior`)."""
 
@@ -51,7 +53,19 @@ class ModelSpec:
 
     @classmethod
     def of(cls, model: DictConfig) -> ModelSpec:
+        """``model`` as a spec, or its first error as one ConfigError line: the chain's own rules
+        (:func:`demon_lab.nets.chain.check_options`) and the two switches."""
+        from demon_lab.nets.chain import check_options
+
         values = OmegaConf.to_container(model, resolve=True)
+        try:
+            check_options(values["variant"], values["width"], values["compat"], values["correlation"],
+                          {k: values[k] for k in PRIOR_KEYS}, prefix="model.")
+        except ValueError as e:
+            raise ConfigError(str(e)) from None
+        for key in ("channels_last", "compile"):
+            if not isinstance(values[key], bool):
+                raise ConfigError(f"model.{key}: expected true or false, got {values[key]!r}")
         correlation = values["correlation"]
         return cls(**{**{f.name: values[f.name] for f in fields(cls)},
                       "width": float(values["width"]),
@@ -304,7 +318,8 @@ def stage_spec(cfg: DictConfig, name: str) -> StageSpec:
     """``schedule.stages.NAME`` as its kind's spec; an option left out, or null where its default is
     not, takes the default; an option the kind does not take is a ConfigError."""
     values = OmegaConf.to_container(cfg.schedule.stages[name], resolve=True)
-    kind = values.pop("kind")
+    kind = values.pop("kind", None)
+    expect_choice(f"schedule.stages.{name}.kind", kind, STAGE_KIND_NAMES)
     spec = STAGE_SPECS[kind]
     unknown = sorted(set(values) - set(options_of(kind)))
     for option in unknown:  # another kind's option, set here: why it is that kind's

@@ -123,11 +123,11 @@ def run(overrides: Sequence[str], out: str | None = None) -> dict[str, list[dict
     with initialize_config_dir(str(CONF), version_base="1.3"):
         cfg = compose("config", overrides=list(overrides))
     drop_missing_sources(cfg, cfg.train)
-    validate(cfg)
-    if cfg.threads is not None:
+    job = validate(cfg)
+    if job.threads is not None:
         from demon_lab.core.execution import set_threads
 
-        set_threads(int(cfg.threads))
+        set_threads(job.threads)
     chain = build_chain(cfg)  # with model.weights loaded, if given
     if cfg.model.weights and not cfg.train:  # the given weights as they are (DeMoN's released ones)
         from demon_lab.pipeline.weights import read_nets
@@ -149,14 +149,14 @@ def run(overrides: Sequence[str], out: str | None = None) -> dict[str, list[dict
     results = {}
     for spec in cfg.data.test:
         dataset = instantiate(spec)
-        loader = torch.utils.data.DataLoader(dataset, batch_size=int(cfg.eval.batch_size))
-        per_pass: list[list[dict[str, float]]] = [[] for _ in range(int(cfg.iterations) + 1 + refine)]
-        for _, batch, output in run_chain(chain, loader, int(cfg.iterations), refine=refine):  # CPU, float32
+        loader = torch.utils.data.DataLoader(dataset, batch_size=job.eval.batch_size)
+        per_pass: list[list[dict[str, float]]] = [[] for _ in range(job.iterations + 1 + refine)]
+        for _, batch, output in run_chain(chain, loader, job.iterations, refine=refine):  # CPU, float32
             for k, samples in enumerate(diagnose_batch(batch, output, chain.compat, refine)):
                 per_pass[k] += samples
         results[dataset.name] = summarize(per_pass)
         for k, row in enumerate(results[dataset.name]):
-            row["pass"] = "refined" if k > int(cfg.iterations) else k
+            row["pass"] = "refined" if k > job.iterations else k
     print(f"[demon_lab] diagnosis (scale {cfg.scale.name}, seed {cfg.seed}; flow at level 2, "
           f"normalised units; rot in degrees):")
     print(format_table(results))

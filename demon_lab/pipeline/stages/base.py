@@ -18,8 +18,8 @@ import torch
 
 from demon_lab.core import execution, losses
 from demon_lab.nets.chain import DeMoN, Prediction, downsample_image
+from demon_lab.pipeline.schema import LR_SCHEDULES
 from demon_lab.pipeline.stages.memo import FrozenMemo
-from demon_lab.pipeline.stages.schedule import LR_SCHEDULES
 
 MULTISTEP_MILESTONES = (0.4, 0.6, 0.8)
 FINAL_LR = 1e-6

@@ -19,8 +19,6 @@ from demon_lab.pipeline.identity import leave_out_neutral, model_identity, stage
 from demon_lab.pipeline.schema import ModelSpec, stage_spec
 from demon_lab.pipeline.stages.cache import CheckpointError, StageDir
 
-LR_SCHEDULES = ("released", "supplementary")
-"""``schedule.lr_schedule``: :func:`demon_lab.pipeline.stages.base.learning_rate` implements both."""
 
 def scheduled_stages(cfg: DictConfig) -> list[str]:
     """The stages a job needs: the schedule's, up to ``schedule.until``."""

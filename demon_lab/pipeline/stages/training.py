@@ -16,17 +16,17 @@ from collections.abc import Callable
 from pathlib import Path
 
 import lightning as L
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
 from demon_lab.core.execution import (
     global_rank,
     normalize_precision,
     plain_state,
     resolve_accelerator,
-    world_size,
 )
 from demon_lab.nets.chain import DeMoN
 from demon_lab.pipeline.schema import FlowStageSpec, stage_spec
+from demon_lab.pipeline.settings import JobSettings
 from demon_lab.pipeline.stages import modules
 from demon_lab.pipeline.stages.cache import StageDir, atomic_checkpoint_io, load_checkpoint
 from demon_lab.pipeline.stages.schedule import build_chain, load_stage, stage_dirs
@@ -49,30 +49,31 @@ def build_datamodule(cfg: DictConfig, batch_size: int, samples: int, skip: int =
     from demon_lab.data.datamodule import DemonDataModule, Draws
     from demon_lab.pipeline.config import instantiate
 
-    train = [{"weight": e.weight, "dataset": instantiate(e.dataset)} for e in cfg.data.train]
-    world = world_size(cfg)
-    draws = Draws(batch_size=batch_size // world, samples_per_epoch=samples, seed=int(cfg.seed), skip=skip,
+    job = JobSettings.of(cfg)
+    train = [{"weight": e.weight, "dataset": instantiate(e.dataset)} for e in job.data.train]
+    world = job.trainer.world
+    draws = Draws(batch_size=batch_size // world, samples_per_epoch=samples, seed=job.seed, skip=skip,
                   rank=global_rank(cfg), world=world, easy_first=None if easy_first is None else tuple(easy_first),
-                  layers_first=layers_first, layers_size=tuple(cfg.data.size), fresh_scenes=float(fresh_scenes))
-    return DemonDataModule(train, draws, num_workers=cfg.data.num_workers, pin_memory=pin_memory)
+                  layers_first=layers_first, layers_size=job.data.size, fresh_scenes=float(fresh_scenes))
+    return DemonDataModule(train, draws, num_workers=job.data.num_workers, pin_memory=pin_memory)
 
 
 def train_stage(cfg: DictConfig, chain: DeMoN, stage: StageDir, logger: L.pytorch.loggers.Logger | None,
                 progress: bool = True) -> dict[str, float]:
     """Train one stage into ``stage`` (resuming from its last checkpoint); returns figures."""
-    spec = stage_spec(cfg, stage.name)
+    job = JobSettings.of(cfg)
+    spec = job.stages[stage.name]
     if spec.steps == 0:  # trains nothing: the nets as they are (from model.weights or an earlier stage)
         if global_rank(cfg) == 0:
             stage.save({net: plain_state(getattr(chain, net)) for net in spec.trained_nets()})
         log.info("stage %s: 0 steps: keeps %s as they are (from model.weights or an earlier stage)", stage.name,
                  ", ".join(spec.trained_nets()))
         return {"seconds": 0.0, "steps_per_second": 0.0, "resumed_from_step": 0}
-    module = getattr(modules, spec.module)(chain, weights=OmegaConf.to_container(cfg.loss, resolve=True),
-                                     lr_schedule=cfg.schedule.lr_schedule,
-                                     weight_decay=float(cfg.schedule.weight_decay),
-                                     channels_last=bool(cfg.model.channels_last),
-                                     reuse_frozen=bool(cfg.trainer.reuse_frozen), **spec.module_options())
-    batch = int(spec.batch_size or cfg.data.batch_size)
+    module = getattr(modules, spec.module)(chain, weights=dict(job.loss), lr_schedule=job.schedule.lr_schedule,
+                                           weight_decay=job.schedule.weight_decay,
+                                           channels_last=job.model.channels_last,
+                                           reuse_frozen=job.trainer.reuse_frozen, **spec.module_options())
+    batch = spec.batch_size or job.data.batch_size
     resume = stage.last_checkpoint if stage.last_checkpoint.is_file() else None
     if resume is None and isinstance(spec, FlowStageSpec) and spec.restarts is not None:
         resume = screen_restarts(cfg, chain, stage, module, logger)
@@ -83,18 +84,18 @@ def train_stage(cfg: DictConfig, chain: DeMoN, stage: StageDir, logger: L.pytorc
     # (demon_lab's sampler deals them, not Lightning's, which would reshuffle the sequence).
     datamodule = build_datamodule(cfg, batch, spec.steps * batch, skip=start_step * batch,
                                   **spec.curriculum(),
-                                  pin_memory=resolve_accelerator(cfg.trainer.accelerator) == "cuda")
+                                  pin_memory=resolve_accelerator(job.trainer.accelerator) == "cuda")
     checkpoint = L.pytorch.callbacks.ModelCheckpoint(
         dirpath=stage.path, filename="step{step}", save_last=True, save_top_k=0,
-        every_n_train_steps=max(1, int(cfg.scale.checkpoint_every)), auto_insert_metric_name=False)
+        every_n_train_steps=job.scale.checkpoint_every, auto_insert_metric_name=False)
     callbacks: list = [checkpoint]
     keep = None
-    if (logger is not None or spec.keep_best) and cfg.data.get("val") and global_rank(cfg) == 0:
+    if (logger is not None or spec.keep_best) and job.data.val and global_rank(cfg) == 0:
         from demon_lab.pipeline.config import instantiate
         from demon_lab.pipeline.stages.validation import KeepBest, StageValidation
 
-        scorer = StageValidation(spec, [instantiate(e) for e in cfg.data.val],
-                                 int(cfg.tracking.val_every_n_steps) if logger is not None else 0)
+        scorer = StageValidation(spec, [instantiate(e) for e in job.data.val],
+                                 job.tracking.val_every_n_steps if logger is not None else 0)
         callbacks.append(scorer)
         if spec.keep_best:
             keep = KeepBest(scorer, spec.best_metric, spec.keep_best, stage.path / "best.pt", spec.trained_nets())
@@ -131,11 +132,12 @@ def train_stage(cfg: DictConfig, chain: DeMoN, stage: StageDir, logger: L.pytorc
 
 def _trainer(cfg: DictConfig, steps: int, **kwargs) -> L.Trainer:
     """A stage's Trainer: its devices, precision and gradient clipping, as DeMoN's optimiser does."""
+    job = JobSettings.of(cfg)
     return L.Trainer(
-        max_steps=steps, accelerator=cfg.trainer.accelerator, devices=int(cfg.trainer.devices),
-        num_nodes=int(cfg.trainer.num_nodes), strategy="ddp" if world_size(cfg) > 1 else "auto",
-        precision=normalize_precision(cfg.precision),
-        log_every_n_steps=int(cfg.tracking.log_every_n_steps), gradient_clip_val=float(cfg.schedule.grad_clip),
+        max_steps=steps, accelerator=job.trainer.accelerator, devices=job.trainer.devices,
+        num_nodes=job.trainer.num_nodes, strategy="ddp" if job.trainer.world > 1 else "auto",
+        precision=normalize_precision(job.precision),
+        log_every_n_steps=job.tracking.log_every_n_steps, gradient_clip_val=job.schedule.grad_clip,
         gradient_clip_algorithm="value", enable_model_summary=False,
         num_sanity_val_steps=0, limit_val_batches=0, deterministic="warn", benchmark=False,
         use_distributed_sampler=False, plugins=[atomic_checkpoint_io()], **kwargs)
@@ -158,15 +160,16 @@ def screen_restarts(cfg: DictConfig, chain: DeMoN, stage: StageDir, module: L.Li
 
     spec = stage_spec(cfg, stage.name)
     starts, steps = spec.restarts
-    batch = int(spec.batch_size or cfg.data.batch_size)
+    job = JobSettings.of(cfg)
+    batch = spec.batch_size or job.data.batch_size
     (net_name,) = spec.trained_nets()
     net = getattr(chain, net_name)
-    scorer = StageValidation(spec, [instantiate(e) for e in cfg.data.val], 0, iterations=0)
+    scorer = StageValidation(spec, [instantiate(e) for e in job.data.val], 0, iterations=0)
     scores = []
     for i in range(starts):
         if i > 0:  # (start 0: the net as the chain holds it)
             with torch.random.fork_rng(devices=[]):
-                torch.manual_seed(int(cfg.seed) * 1_000_003 + i)
+                torch.manual_seed(job.seed * 1_000_003 + i)
                 net.apply(initialise)
         data = build_datamodule(cfg, batch, spec.steps * batch, **spec.curriculum())
         # saved at its last step inside the epoch, as the stage's own checkpoints: the stage resumes from it
