@@ -135,28 +135,29 @@ class StageSpec:
 
     @classmethod
     def check(cls, name: str, values: dict[str, Any]) -> None:
-        """The rules of the kind's own options, on the stage's values as the config gives them (a
+        """The rules of the kind's own options, on the stage's values as the config gives them, its
+        defaults filled in (a
         ConfigError line naming ``schedule.stages.NAME.OPTION``); the rules across the config
         (``data``, the devices, the stages before it) are :func:`demon_lab.pipeline.validate.validate`'s."""
         key = f"schedule.stages.{name}."
         expect_int(key + "steps", values["steps"], 0)
         expect_positive(key + "lr", values["lr"])
-        expect_choice(key + "oracle", values.get("oracle"), cls.oracles)
-        expect_int(key + "warmup_steps", values.get("warmup_steps", 0), 0)
-        easy = values.get("easy_first")
+        expect_choice(key + "oracle", values["oracle"], cls.oracles)
+        expect_int(key + "warmup_steps", values["warmup_steps"], 0)
+        easy = values["easy_first"]
         if easy is not None:
             numbers = isinstance(easy, list) and len(easy) == 2 and all(
                 isinstance(v, int | float) and not isinstance(v, bool) for v in easy)
             if not numbers or not (0 < easy[0] <= 1 and 0 < easy[1] <= 1):
                 raise ConfigError(f"{key}easy_first: expected [start, until]: the easiest fraction start in (0, 1] "
                                   f"widening to all samples at the fraction until in (0, 1] of the stage, got {easy!r}")
-        rate = values.get("fresh_scenes", 0.0)
+        rate = values["fresh_scenes"]
         if isinstance(rate, bool) or not isinstance(rate, int | float) or not 0 <= rate <= 1:
             raise ConfigError(f"{key}fresh_scenes: expected new scenes per training draw in [0, 1], got {rate!r}")
         if rate and easy is not None:
             raise ConfigError(f"{key}fresh_scenes: the easy_first order is of a fixed set of scenes; "
                               f"leave easy_first unset")
-        expect_int(key + "keep_best", values.get("keep_best", 0), 0)
+        expect_int(key + "keep_best", values["keep_best"], 0)
 
 
 @dataclass(frozen=True)
@@ -193,18 +194,18 @@ class FlowStageSpec(StageSpec):
     def check(cls, name: str, values: dict[str, Any]) -> None:
         super().check(name, values)
         key = f"schedule.stages.{name}."
-        expect_fraction(key + "sig_start", values.get("sig_start", 0.0), note=" (1: never)")
-        expect_positive(key + "level5_fade", values.get("level5_fade", 1.0))
-        net = values.get("net", "flow1")
+        expect_fraction(key + "sig_start", values["sig_start"], note=" (1: never)")
+        expect_positive(key + "level5_fade", values["level5_fade"])
+        net = values["net"]
         for option, what in FLOW1_ONLY.items():
             if values.get(option) is not None and net != "flow1":
                 raise ConfigError(f"{key}{option}: only the bootstrap flow net's stage (flow1) {what} "
                                   f"(this stage: {cls.kind}, {net})")
-        if values.get("layers_first") is not None:
+        if values["layers_first"] is not None:
             expect_fraction(key + "layers_first", values["layers_first"], low_open=True)
-            if values.get("easy_first") is not None:
+            if values["easy_first"] is not None:
                 raise ConfigError(f"{key}layers_first: one curriculum at a time; leave easy_first unset")
-        restarts = values.get("restarts")
+        restarts = values["restarts"]
         if restarts is not None:
             pair = isinstance(restarts, list) and len(restarts) == 2 and all(
                 isinstance(v, int) and not isinstance(v, bool) for v in restarts)
@@ -235,7 +236,7 @@ class DepthMotionStageSpec(StageSpec):
     @classmethod
     def check(cls, name: str, values: dict[str, Any]) -> None:
         super().check(name, values)
-        expect_fraction(f"schedule.stages.{name}.gt_flow_warmup", values.get("gt_flow_warmup", 0.0))
+        expect_fraction(f"schedule.stages.{name}.gt_flow_warmup", values["gt_flow_warmup"])
 
 
 @dataclass(frozen=True)
@@ -261,7 +262,7 @@ class IterativeStageSpec(StageSpec):
     @classmethod
     def check(cls, name: str, values: dict[str, Any]) -> None:
         super().check(name, values)
-        expect_fraction(f"schedule.stages.{name}.sig_start", values.get("sig_start", 0.0), note=" (1: never)")
+        expect_fraction(f"schedule.stages.{name}.sig_start", values["sig_start"], note=" (1: never)")
 
     def trained_nets(self) -> tuple[str, ...]:
         return ("flow2", "dm2")
@@ -332,7 +333,7 @@ def stage_spec(cfg: DictConfig, name: str) -> StageSpec:
         raise ConfigError(f"schedule.stages.{name}.{unknown[0]}: not an option of a {kind} stage (its options: "
                           f"{', '.join(options_of(kind))})")
     defaults = {f.name: f.default for f in fields(spec) if f.default is not dataclasses.MISSING}
-    values = {k: v for k, v in values.items() if v is not None or defaults.get(k) is None}
+    values = {**defaults, **{k: v for k, v in values.items() if v is not None or defaults.get(k) is None}}
     spec.check(name, values)
     for key in ("easy_first", "restarts"):
         if values.get(key) is not None:
