@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import os
+import re
 import shutil
 import socket
 import tempfile
@@ -60,6 +61,29 @@ def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
+
+
+def table_rows(text: str) -> list[list[str]]:
+    """The lines of every Markdown (pipe) table in ``text``, header lines included, each as its cells'
+    text (padding stripped, ``\\|`` unescaped); the separator lines (``|:---|--:|``) left out."""
+    rows = []
+    for line in text.splitlines():
+        if line.startswith("|") and not re.fullmatch(r"\|(\s*:?-+:?\s*\|)+", line.strip()):
+            cells = re.split(r"(?<!\\)\|", line.strip()[1:-1])
+            rows.append([c.strip().replace("\\|", "|") for c in cells])
+    return rows
+
+
+def table_alignment(text: str) -> list[list[str]]:
+    """Each separator line's column alignment in ``text``: ``l``, ``r``, ``c`` (``:---``, ``---:``,
+    ``:---:``) or ``-`` (``---``, shown left)."""
+    found = []
+    for line in text.splitlines():
+        if line.startswith("|") and re.fullmatch(r"\|(\s*:?-+:?\s*\|)+", line.strip()):
+            marks = [m.strip() for m in line.strip()[1:-1].split("|")]
+            found.append(["c" if m.startswith(":") and m.endswith(":") else "l" if m.startswith(":")
+                          else "r" if m.endswith(":") else "-" for m in marks])
+    return found
 
 
 def relative_motion(pose1: np.ndarray, pose2: np.ndarray) -> np.ndarray:

@@ -5,6 +5,7 @@ from __future__ import annotations
 import re
 
 import torch
+from conftest import table_alignment, table_rows
 
 from demon_lab.core import geometry as geo
 from demon_lab.data import throughput
@@ -25,11 +26,34 @@ def test_geometry_benchmark_reports_every_op_with_numbers(tmp_path):
     out = tmp_path / "bench.md"
     assert bench.main(["geometry", "--repeats", "1", "--out", str(out)]) == 0
     text = out.read_text()
+    rows = {r[0]: r[1:] for r in table_rows(text)}
+    assert rows["op"] == ["ms / call", "Mpixel/s", "vs OpenCV (same run)"]
+    assert table_alignment(text) == [["l", "r", "r", "l"]]
     for op in ("warp_image", "flow_from_depth_motion", "depth_from_flow_motion", "normals_from_depth"):
-        row = re.search(rf"^\| {op} \| ([0-9.]+) \| ([0-9.]+) \|", text, re.M)
-        assert row and float(row.group(1)) > 0 and float(row.group(2)) > 0, op
-    assert re.search(r"\| warp_image .*\| [0-9.]+x cv2\.remap", text)
-    assert re.search(r"angle_axis_to_matrix \(B=8\) .*x cv2\.Rodrigues", text)
+        assert float(rows[op][0]) > 0 and float(rows[op][1]) > 0, op
+    assert re.fullmatch(r"[0-9.]+x cv2\.remap \([0-9.]+ ms\)", rows["warp_image"][2])
+    assert re.fullmatch(r"[0-9.]+x cv2\.Rodrigues loop \([0-9.]+ ms\)", rows["angle_axis_to_matrix (B=8)"][2])
+    assert rows["angle_axis_to_matrix (B=8)"][1] == ""
+
+
+def test_the_benchmark_tables_hold_their_cells_as_the_hand_written_tables_did():
+    """The train section's job table and the data section's HDF5 table from known rates: the cells
+    and the column alignment (numbers right, the yes/no column centred) of the tables the benchmark
+    wrote by hand before pandas wrote them."""
+    from demon_lab.tools import bench_data
+
+    job = bench.job_table({"flow1": 2.5, "dm1": 1.0}, {"flow1": 5.0, "dm1": 4.0})
+    assert table_rows(job) == table_rows("\n".join([
+        "| stage | job steps/s | step alone, steps/s | job / step |",
+        "| flow1 | 2.50 | 5.00 | 50.0% |",
+        "| dm1 | 1.00 | 4.00 | 25.0% |"]))
+    assert table_alignment(job) == [["l", "r", "r", "r"]]  # (was |---|---:|---:|---:|)
+    h5 = bench_data.h5_table({0: 320.0, 2: 1280.0}, batch=32, step=5.0)
+    assert table_rows(h5) == [["loader workers", "samples/s", "batches/s", "steps/s fed with 4x headroom",
+                               "4x the step"],
+                              ["0", "320", "10.00", "2.50", "no"], ["2", "1280", "40.00", "10.00", "yes"]]
+    assert table_alignment(h5) == [["r", "r", "r", "r", "c"]]  # (was |---:|---:|---:|---:|:---:|)
+    assert len(job.splitlines()) == 4 and all(line.startswith("|") for line in job.splitlines())  # (as --docs finds it)
 
 
 def test_job_rates_reads_each_stage_rate_from_the_job_it_runs(monkeypatch):

@@ -9,6 +9,7 @@ import re
 from pathlib import Path
 
 import pytest
+from conftest import table_alignment, table_rows
 
 ROOT = Path(__file__).resolve().parents[1]
 PAGES = [ROOT / "README.md", ROOT / "CHANGELOG.md", ROOT / "NOTICE.md", *sorted((ROOT / "docs").rglob("*.md")),
@@ -89,15 +90,19 @@ def test_the_report_command_writes_a_marked_table_from_the_reports_csv(tmp_path)
     header = "table,dataset,row,metric,mean,std,ci95,n,values,paper,design,config,run_ids\n"
     (tmp_path / "reports" / "s.csv").write_text(header + "t,setA,row a,epe,0.1234,0.01,0.0248,3,,,,,\n"
                                                   "t,setA,row b,epe,0.5,nan,nan,1,,,,,\n"
-                                                  "t,setA,row c,epe,nan,nan,nan,0,,,,,\n")
+                                                  "t,setA,row c,epe,nan,nan,nan,0,,,,,\n"
+                                                  "t,setA,row e,epe,0.25,,,1,,,,,\n"  # (pandas: NaN empty)
+                                                  "t,setA,row f,epe,,,,0,,,,,\n")
     page = tmp_path / "docs" / "p.md"
     page.write_text("before\n<!-- report: s t setA -->\nold\n<!-- /report -->\nafter\n")
     assert doc_tables.stale_blocks([page], tmp_path) == ["docs/p.md: s t setA"]
     assert main(["--docs", "--out", str(tmp_path / "reports")]) == 0
     lines = page.read_text().splitlines()
     assert lines[0] == "before" and lines[-1] == "after"
-    assert lines[2:6] == ["| row | n | EPE |", "|---|---|---|", "| row a | 3 | 0.123 ± 0.025 |",
-                          "| row b | 1 | 0.500 |"]
+    assert lines[2].startswith("| row ") and lines[7] == ""
+    assert table_rows("\n".join(lines[2:7])) == [["row", "n", "EPE"], ["row a", "3", "0.123 ± 0.025"],
+                                                ["row b", "1", "0.500"], ["row e", "1", "0.250"]]
+    assert table_alignment(page.read_text()) == [["l", "l", "l"]]
     assert "[reports/s.md](../reports/s.md)" in page.read_text()
     assert doc_tables.stale_blocks([page], tmp_path) == []
     page.write_text(page.read_text().replace("0.500", "0.501"))
@@ -105,8 +110,8 @@ def test_the_report_command_writes_a_marked_table_from_the_reports_csv(tmp_path)
     # a cell as the report's Markdown prints it: large values without decimals, fewer seeds marked
     (tmp_path / "reports" / "w.csv").write_text(header + "t,setA,row d,epe,7332.19,1,15785.614,3,,,,,\n"
                                                   "t,setA,row d,sc_inv,0.097,1,0.45,2,,,,,\n")
-    assert doc_tables.render(tmp_path / "reports", "w", "t", "setA").splitlines()[2] == \
-        "| row d | 3 | 7332 ± 15786 | 0.097 ± 0.450 (n = 2) |"
+    assert table_rows(doc_tables.render(tmp_path / "reports", "w", "t", "setA"))[1] == \
+        ["row d", "3", "7332 ± 15786", "0.097 ± 0.450 (n = 2)"]
 
 
 INTERVAL = re.compile(r"-?\d[\d,]*\.?\d* ± \d[\d,]*\.?\d*")
@@ -189,9 +194,11 @@ def test_the_diagnosis_block_reads_each_seeds_passes(tmp_path):
         passes = [{"pass": 0, "epe": 0.1 + seed, "prior_epe": float("nan")},
                   {"pass": 1, "epe": 0.2, "prior_epe": 0.25}, {"pass": "refined", "epe": 9.0, "prior_epe": 9.0}]
         (tmp_path / "diagnose" / f"x_seed{seed}.json").write_text(json.dumps({"passes": {"setA": passes}}))
-    table = doc_tables.render(tmp_path, "diagnose", "x", "setA").splitlines()
-    assert table[:4] == ["| seed | pass 0 EPE | pass 1: prior EPE / EPE |", "|---|---:|---|",
-                         "| 0 | 0.100 | 0.250 / 0.200 |", "| 1 | 1.100 | 0.250 / 0.200 |"]
+    table = doc_tables.render(tmp_path, "diagnose", "x", "setA")
+    assert table_rows(table) == [["seed", "pass 0 EPE", "pass 1: prior EPE / EPE"], ["0", "0.100", "0.250 / 0.200"],
+                                 ["1", "1.100", "0.250 / 0.200"]]
+    assert table_alignment(table) == [["l", "r", "l"]]
+    assert table.split("\n\n")[1].startswith("*From reports/diagnose/x_seed*.json, setA")
 
 
 def test_the_configuration_reference_is_current_and_gives_every_key_a_meaning():

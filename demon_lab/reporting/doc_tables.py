@@ -21,12 +21,13 @@ the presets' camera statistics beside the supplementary's Table 1 in ``reports/d
 from __future__ import annotations
 
 import csv
+import math
 import re
 from collections.abc import Iterable
 from pathlib import Path
 
 from demon_lab.core.metrics import column
-from demon_lab.reporting.tables import Cell
+from demon_lab.reporting.tables import Cell, markdown_table
 from demon_lab.reporting.writers import cell_text
 from demon_lab.resources import STUDIES
 
@@ -91,12 +92,11 @@ def render_diagnose(reports: Path, name: str, dataset: str) -> str:
         cells = [f"{passes[0]['epe']:.3f}"] + [f"{p['prior_epe']:.3f} / {p['epe']:.3f}" for p in passes[1:]]
         rows.append((path.stem.rsplit("_seed", 1)[1], cells))
     width = max(len(cells) for _, cells in rows)
-    lines = ["| seed | pass 0 EPE | " + " | ".join(f"pass {k}: prior EPE / EPE" for k in range(1, width)) + " |",
-             "|---|---:|" + "---|" * (width - 1)]
-    lines += [f"| {seed} | " + " | ".join(cells) + " |" for seed, cells in rows]
+    header = ["seed", "pass 0 EPE", *[f"pass {k}: prior EPE / EPE" for k in range(1, width)]]
+    table = markdown_table(header, [[seed, *cells] for seed, cells in rows], "lr")
     source = (f"*From reports/diagnose/{name}_seed*.json, {dataset}; `python -m demon_lab.diagnose seed=S --out FILE` "
               "writes one, `python -m demon_lab.report --docs` this table.*")
-    return "\n".join(lines) + "\n\n" + source + "\n"
+    return table + "\n\n" + source + "\n"
 
 
 def render(reports: Path, study: str, table: str, dataset: str) -> str:
@@ -115,21 +115,25 @@ def render(reports: Path, study: str, table: str, dataset: str) -> str:
         raise ValueError(f"{path}: no table {table!r} on {dataset!r}")
     rows = list(dict.fromkeys(r["row"] for r in cells))
     metrics = list(dict.fromkeys(r["metric"] for r in cells))
-    lines = ["| row | n | " + " | ".join(column(m).label for m in metrics) + " |",
-             "|---|---|" + "---|" * len(metrics)]
+    body = []
     for row in rows:
         mine = {r["metric"]: r for r in cells if r["row"] == row}
         n = max(int(r["n"]) for r in mine.values())
         if n == 0:
             continue
-        text = [cell_text(Cell(mean=float(mine[m]["mean"]), ci95=float(mine[m]["ci95"]), n=int(mine[m]["n"])),
+        text = [cell_text(Cell(mean=_float(mine[m]["mean"]), ci95=_float(mine[m]["ci95"]), n=int(mine[m]["n"])),
                           n, " ± ", " (n = {})") for m in metrics]
-        lines.append(f"| {row} | {n} | " + " | ".join(text) + " |")
-    lines.append("")
+        body.append([row, str(n), *text])
+    lines = [markdown_table(["row", "n", *[column(m).label for m in metrics]], body), ""]
     lines.append(f"*From [reports/{study}.md](reports/{study}.md), table `{table}`, {dataset}; "
                  f"`python -m demon_lab.report {study}` writes the report, `python -m demon_lab.report --docs` "
                  "this table.*")
     return "\n".join(lines) + "\n"
+
+
+def _float(text: str) -> float:
+    """A number of a report's CSV; NaN where the cell is empty (a value that is not defined)."""
+    return float(text) if text.strip() else math.nan
 
 
 def _relink(text: str, page: Path, root: Path) -> str:

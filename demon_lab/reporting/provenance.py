@@ -25,6 +25,7 @@ import pandas as pd
 from demon_lab.pipeline.identity import digest, is_semantic
 from demon_lab.pipeline.schema import PRIOR_KEYS
 from demon_lab.reporting.archive import IMPORTED_FROM
+from demon_lab.reporting.tables import markdown_table
 
 DEMON = "DeMoN's design"
 DEPARTURE_MODEL_KEYS = tuple(f"model.{k}" for k in (*PRIOR_KEYS, "correlation"))
@@ -195,9 +196,9 @@ def markdown(entries: Sequence[Mapping[str, Any]], used: pd.DataFrame, versions:
              f"- designs: {'; '.join(dict.fromkeys(e['design'] for e in entries)) or '-'}\n",
              f"- code: commit {commits(used)}; {versions}\n",
              f"- runs: {where}; config: a digest of each row's composed configuration (the seed aside)\n\n",
-             "| table | row | design | config | seeds | run ids |\n|---|---|---|---|---|---|\n"]
-    lines += [f"| {e['table']} | {e['row']} | {e['design']} | {e['config']} | {e['seeds']} | {e['runs']} |\n"
-              for e in entries]
+             markdown_table(["table", "row", "design", "config", "seeds", "run ids"],
+                            [[e["table"], e["row"], e["design"], e["config"], e["seeds"], e["runs"]]
+                             for e in entries]) + "\n"]
     return "".join(lines)
 
 

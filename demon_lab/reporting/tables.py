@@ -1,6 +1,7 @@
 """Tables: the terminal tables of the main command's results, the diagnosis and the data
-statistics, and the cells of a study's result tables (:func:`demon_lab.reporting.selection.build`) with the
-paper's values beside them, which the report's tables and figures read.
+statistics, the Markdown tables of the reports, the docs and the benchmark (:func:`markdown_table`: pandas
+writes them), and the cells of a study's result tables (:func:`demon_lab.reporting.selection.build`) with
+the paper's values beside them, which the report's tables and figures read.
 
 Column names come from :data:`demon_lab.core.metrics.COLUMNS` (their ``text`` form).
 """
@@ -24,6 +25,25 @@ def text_table(header: Sequence[str], rows: Iterable[Sequence[str]], left: int =
         return "  ".join(c.rjust(w) if i >= left else c.ljust(w) for i, (c, w) in enumerate(zip(cells, widths)))
 
     return "\n".join([line(header), "  ".join("-" * w for w in widths), *map(line, rows)])
+
+
+ALIGN = {"l": "left", "r": "right", "c": "center"}
+
+
+def markdown_table(header: Sequence[str], rows: Iterable[Sequence[str]], align: str = "") -> str:
+    """A Markdown (pipe) table of cells' text, written by pandas (``DataFrame.to_markdown``, through
+    tabulate), without a final newline. The cells stay as given (no number parsing: ``0.100`` stays
+    ``0.100``; tabulate trims their outer spaces), a ``|`` in one escaped. ``align``: a letter per column,
+    ``l`` (left), ``r`` (right) or ``c`` (centred), which the separator line marks with ``:``; columns past
+    its end are left-aligned."""
+    import pandas as pd
+
+    def text(cells: Sequence[str]) -> list[str]:
+        return [str(c).replace("|", r"\|") for c in cells]
+
+    frame = pd.DataFrame([text(r) for r in rows], columns=range(len(header)), dtype=object)
+    return frame.to_markdown(index=False, headers=text(header), disable_numparse=True,
+                             colalign=[ALIGN[a] for a in align.ljust(len(header), "l")])
 
 
 def number(value: float, digits: int = 3) -> str:

@@ -3,10 +3,9 @@ writes from the cells that :mod:`demon_lab.reporting.selection` built."""
 
 from __future__ import annotations
 
-import csv
 import io
 import math
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -15,7 +14,7 @@ import pandas as pd
 from demon_lab.core.metrics import UNITS_NOTE, column
 from demon_lab.pipeline.tracking import TAG
 from demon_lab.reporting.selection import field, run_value
-from demon_lab.reporting.tables import Cell, cell, has_values, paper_cells
+from demon_lab.reporting.tables import Cell, cell, has_values, markdown_table, paper_cells
 
 
 def _fmt(v: float, digits: int = 3) -> str:
@@ -74,24 +73,7 @@ def write_markdown(spec, result, info, failed: pd.DataFrame, paper_rows) -> str:
             if not has_values(result, table["name"], dataset):
                 continue
             w(f"### {dataset}" + (f" (paper: {paper_dataset})" if paper_dataset else "") + "\n\n")
-            header = ["row", "n", *[column(c).label for c in table["columns"]]]
-            w("| " + " | ".join(header) + " |\n|" + "---|" * len(header) + "\n")
-            for row in table["rows"]:
-                entry = row_cells(result, table, dataset, row)
-                n = max((c.n for c in entry.values()), default=0)
-                cells = [cell_text(entry[c], n, " ± ", " (n = {})") for c in table["columns"]]
-                w(f"| {row['label']} | {n} | " + " | ".join(cells) + " |\n")
-                paper = paper_cells(paper_rows, row.get("paper"), paper_dataset, table["columns"])
-                if paper:
-                    values = " | ".join(_fmt(paper.get(c, math.nan)) for c in table["columns"])
-                    w(f"| *{_paper_label(row)}* | | {values} |\n")
-            for d in table.get("differences", []):
-                entry = row_cells(result, table, dataset, d)
-                n = max((c.n for c in entry.values()), default=0)
-                if n:
-                    cells = [cell_text(entry[c], n, " ± ", " (n = {})") for c in table["columns"]]
-                    w(f"| *{d['label']}* | {n} | " + " | ".join(cells) + " |\n")
-            w("\n")
+            w(markdown_table(*_rows(result, table, dataset, paper_dataset, paper_rows)) + "\n\n")
     if spec.get("figures"):
         w("## Figures\n\n")
         for path in sorted(result.get("figures", [])):
@@ -124,16 +106,43 @@ def write_markdown(spec, result, info, failed: pd.DataFrame, paper_rows) -> str:
     return out.getvalue()
 
 
+def _rows(result, table, dataset, paper_dataset, paper_rows) -> tuple[list[str], list[list[str]]]:
+    """The header and the rows of a table's Markdown on one test set, as text: per row its label, n
+    and cells; under it, in italics, the paper's row (no n); then the difference rows, in italics."""
+    header = ["row", "n", *[column(c).label for c in table["columns"]]]
+    rows = []
+    for row in table["rows"]:
+        entry = row_cells(result, table, dataset, row)
+        n = max((c.n for c in entry.values()), default=0)
+        rows.append([row["label"], str(n), *[cell_text(entry[c], n, " ± ", " (n = {})") for c in table["columns"]]])
+        paper = paper_cells(paper_rows, row.get("paper"), paper_dataset, table["columns"])
+        if paper:
+            rows.append([f"*{_paper_label(row)}*", "", *[_fmt(paper.get(c, math.nan)) for c in table["columns"]]])
+    for d in table.get("differences", []):
+        entry = row_cells(result, table, dataset, d)
+        n = max((c.n for c in entry.values()), default=0)
+        if n:
+            rows.append([f"*{d['label']}*", str(n),
+                         *[cell_text(entry[c], n, " ± ", " (n = {})") for c in table["columns"]]])
+    return header, rows
+
+
 def _paper_label(row: Mapping[str, Any]) -> str:
     """A paper row's label: the spec's ``paper.label``, else ``paper: <row label>``."""
     return row["paper"].get("label") or f"paper: {row['label']}"
 
 
+CSV_COLUMNS = ("table", "dataset", "row", "metric", "mean", "std", "ci95", "n", "values", "paper", "design",
+               "config", "run_ids")
+"""The columns of a report's CSV: one line per cell (a table's row and metric on one test set)."""
+
+
 def write_csv(spec, result, paper_rows) -> str:
-    out = io.StringIO()
-    writer = csv.writer(out)
-    writer.writerow(["table", "dataset", "row", "metric", "mean", "std", "ci95", "n", "values", "paper", "design",
-                     "config", "run_ids"])
+    """Every cell of the spec's tables, rows and difference rows, in the tables' order (pandas writes
+    it): mean, std and ci95 as full-precision floats, n, the per-seed values, the paper's value, and
+    the row's design, config digest and run ids. A value that is not defined (a cell no run logged,
+    the spread of one seed, a cell the paper lacks) is empty."""
+    lines = []
     origin = {(e["table"], e["row"]): e for e in result.get("provenance", [])}
     for table in spec["tables"]:
         for dataset, paper_dataset in spec["datasets"].items():
@@ -141,13 +150,16 @@ def write_csv(spec, result, paper_rows) -> str:
                 paper = paper_cells(paper_rows, row.get("paper"), paper_dataset, table["columns"])
                 source = origin.get((table["name"], row["label"]), {})
                 for c, cl in row_cells(result, table, dataset, row).items():
-                    writer.writerow([table["name"], dataset, row["label"], c, cl.mean, cl.std, cl.ci95, cl.n,
-                                     " ".join(f"{v:.6g}" for v in cl.values), paper.get(c, ""),
-                                     source.get("design", ""), source.get("config", ""), source.get("runs", "")])
-    return out.getvalue()
+                    lines.append([table["name"], dataset, row["label"], c, cl.mean, cl.std, cl.ci95, cl.n,
+                                  " ".join(f"{v:.6g}" for v in cl.values), paper.get(c, math.nan),
+                                  source.get("design", ""), source.get("config", ""), source.get("runs", "")])
+    return pd.DataFrame(lines, columns=list(CSV_COLUMNS)).to_csv(index=False, na_rep="")
 
 
 def write_tex(spec, result, info, paper_rows) -> str:
+    """A booktabs table per table and test set (pandas' Styler writes the tabular) in a ``table``
+    float with its caption, under ``%`` lines naming the study, its runs and each row's provenance;
+    labels escaped (``_ % &``), the paper's rows and the difference rows in italics."""
     esc = lambda s: str(s).replace("_", r"\_").replace("%", r"\%").replace("&", r"\&")  # noqa: E731
     out = io.StringIO()
     w = out.write
@@ -161,26 +173,33 @@ def write_tex(spec, result, info, paper_rows) -> str:
             if not has_values(result, table["name"], dataset):
                 continue
             cols = table["columns"]
-            w("\\begin{table}[t]\\centering\\small\n")
-            w(f"\\caption{{{esc(table['caption'])}; {esc(dataset)}, mean $\\pm$ 95\\% CI over seeds"
-              f"{'; paper (' + esc(paper_dataset) + ') in italics' if paper_dataset else ''}.}}\n")
-            w("\\begin{tabular}{l" + "r" * len(cols) + "}\\toprule\n")
-            w(" & ".join(["", *[column(c).tex for c in cols]]) + " \\\\\\midrule\n")
+            rows = []
             for row in table["rows"]:
                 entry = row_cells(result, table, dataset, row)
                 n = max((entry[c].n for c in cols), default=0)
-                cells = [cell_text(entry[c], n, " $\\pm$ ", " ($n={}$)") for c in cols]
-                w(" & ".join([esc(row["label"]), *cells]) + " \\\\\n")
+                rows.append([esc(row["label"]), *[cell_text(entry[c], n, " $\\pm$ ", " ($n={}$)") for c in cols]])
                 paper = paper_cells(paper_rows, row.get("paper"), paper_dataset, cols)
                 if paper:
                     label = esc(row["paper"]["label"]) if row["paper"].get("label") else "paper"
-                    w(" & ".join([f"\\quad\\textit{{{label}}}", *[f"\\textit{{{_fmt(paper.get(c, math.nan))}}}"
-                                                              for c in cols]]) + " \\\\\n")
+                    rows.append([f"\\quad\\textit{{{label}}}",
+                                 *[f"\\textit{{{_fmt(paper.get(c, math.nan))}}}" for c in cols]])
             for d in table.get("differences", []):
                 entry = row_cells(result, table, dataset, d)
                 n = max((entry[c].n for c in cols), default=0)
                 if n:
-                    cells = [cell_text(entry[c], n, " $\\pm$ ", " ($n={}$)") for c in cols]
-                    w(" & ".join([f"\\textit{{{esc(d['label'])}}}", *cells]) + " \\\\\n")
-            w("\\bottomrule\\end{tabular}\n\\end{table}\n\n")
+                    rows.append([f"\\textit{{{esc(d['label'])}}}",
+                                 *[cell_text(entry[c], n, " $\\pm$ ", " ($n={}$)") for c in cols]])
+            w("\\begin{table}[t]\\centering\\small\n")
+            w(f"\\caption{{{esc(table['caption'])}; {esc(dataset)}, mean $\\pm$ 95\\% CI over seeds"
+              f"{'; paper (' + esc(paper_dataset) + ') in italics' if paper_dataset else ''}.}}\n")
+            w(tabular(["", *[column(c).tex for c in cols]], rows, "l" + "r" * len(cols)))
+            w("\\end{table}\n\n")
     return out.getvalue()
+
+
+def tabular(header: Sequence[str], rows: Sequence[Sequence[str]], column_format: str) -> str:
+    """A booktabs ``tabular`` (``\\toprule``, ``\\midrule``, ``\\bottomrule``) of cells that are LaTeX
+    already (escaped, in math or italics as they need), written by pandas' Styler."""
+    frame = pd.DataFrame([list(r) for r in rows], columns=range(len(header)), dtype=object)
+    styler = frame.style.hide(axis="index").relabel_index(list(header), axis="columns")
+    return styler.to_latex(column_format=column_format, hrules=True)

@@ -18,7 +18,7 @@ import argparse
 import datetime as dt
 import re
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -26,6 +26,7 @@ import torch
 
 from demon_lab.core import geometry as geo
 from demon_lab.core import warping
+from demon_lab.reporting.tables import markdown_table
 from demon_lab.tools.bench_data import bench_data
 from demon_lab.tools.benchmarking import BLOCK_S, machine_line, measure
 
@@ -107,9 +108,7 @@ def bench_geometry(repeats: int) -> str:
         "mean demon_lab is faster than OpenCV in the same run; "
         "cv2.remap gets precomputed maps and one call per image.",
         "",
-        "| op | ms / call | Mpixel/s | vs OpenCV (same run) |",
-        "|---|---:|---:|---|",
-        *[f"| {a} | {b} | {c} | {d} |" for a, b, c, d in rows],
+        markdown_table(["op", "ms / call", "Mpixel/s", "vs OpenCV (same run)"], rows, "lrrl"),
         "",
     ]
     return "\n".join(lines)
@@ -219,9 +218,7 @@ def bench_train(repeats: int) -> str:
         "(torch.utils.flop_counter) / its time, against this machine's float32 matmul "
         f"(2048x2048) measured in the same run: {peak / 1e9:.0f} GFLOP/s.",
         "",
-        "| stage | variant | steps/s | GFLOP/s | of matmul peak |",
-        "|---|---|---:|---:|---:|",
-        *[f"| {a} | {b} | {c} | {d} | {e} |" for a, b, c, d, e in rows],
+        markdown_table(["stage", "variant", "steps/s", "GFLOP/s", "of matmul peak"], rows, "llrrr"),
         "",
         f"Inference of the full chain (v1, full width, 256x192, bootstrap + 3 iterations + refinement, batch 1): "
         f"{1 / infer:.2f} pairs/s.",
@@ -233,12 +230,17 @@ def bench_train(repeats: int) -> str:
         "validation, checkpoints and MLflow logging; an empty stage cache, the data cache as the user has it), "
         "each stage's `stage/<name>/steps_per_second` from its MLflow run against the step above:",
         "",
-        "| stage | job steps/s | step alone, steps/s | job / step |",
-        "|---|---:|---:|---:|",
-        *[f"| {k} | {v:.2f} | {bare[k]:.2f} | {v / bare[k]:.1%} |" for k, v in job.items()],
+        job_table(job, bare),
         "",
     ]
     return "\n".join(lines)
+
+
+def job_table(job: Mapping[str, float], bare: Mapping[str, float]) -> str:
+    """The train section's last table: per stage, its steps/s in the job (``job``), the bare step's
+    (``bare``) and their ratio."""
+    return markdown_table(["stage", "job steps/s", "step alone, steps/s", "job / step"],
+                          [[k, f"{v:.2f}", f"{bare[k]:.2f}", f"{v / bare[k]:.1%}"] for k, v in job.items()], "lrrr")
 
 
 JOB_STEPS = 1000

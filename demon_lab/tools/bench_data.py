@@ -7,12 +7,13 @@ from __future__ import annotations
 import datetime as dt
 import os
 import time
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 import torch
 
 from demon_lab.data.throughput import demon_h5_pair_ms, demon_h5_rates, worker_counts, write_demon_layout_file
+from demon_lab.reporting.tables import markdown_table
 from demon_lab.tools.benchmarking import machine_line
 
 
@@ -75,10 +76,8 @@ def bench_data(repeats: int) -> str:
         "as training serves them (translation normalised, augmented with DeMoN's rotation and mirror), "
         "read back from the disk cache every time or kept in memory after the first read (the default).",
         "",
-        "| resolution | pairs timed | render, 1 core | render, "
-        f"{workers} workers | training path from disk cache, 1 core | from memory, 1 core |",
-        "|---|---:|---:|---:|---:|---:|",
-        *[f"| {a} | {b} | {c} | {d} | {e} | {f} |" for a, b, c, d, e, f in rows],
+        markdown_table(["resolution", "pairs timed", "render, 1 core", f"render, {workers} workers",
+                        "training path from disk cache, 1 core", "from memory, 1 core"], rows, "lrrrrr"),
         "",
         "2-D layers under affine motion (`layers_first`; `demon_lab/data/layers.py`), generated as a training "
         "draw generates them, one core: " + ", ".join(f"{rate:.0f} pairs/s at {w}x{h}" for (h, w), rate in layers)
@@ -129,8 +128,6 @@ def _demon_h5_section(repeats: int) -> list[str]:
                                pin_memory=torch.cuda.is_available())
         draw_ms, eval_ms = demon_h5_pair_ms(path, size=size)
     step, where = paper_step_rate()
-    rows = [f"| {w} | {r:.0f} | {r / batch:.2f} | {r / batch / 4:.2f} | {'yes' if r / batch / 4 >= step else 'no'} |"
-            for w, r in rates.items()]
     return [
         f"DeMoN's HDF5 files, the training path (`DemonH5Dataset`, train phase: WebP and LZ4 decoded, "
         f"resized to {size[1]}x{size[0]}, DeMoN's augmentation, batches of {batch} collated) through a DataLoader, "
@@ -141,8 +138,14 @@ def _demon_h5_section(repeats: int) -> list[str]:
         f"One pair on one core: {draw_ms:.1f} ms as a training draw, {eval_ms:.1f} ms as an evaluation sample "
         "(with the flow, normals and masks a draw does not compute).",
         "",
-        "| loader workers | samples/s | batches/s | steps/s fed with 4x headroom | 4x the step |",
-        "|---:|---:|---:|---:|:---:|",
-        *rows,
+        h5_table(rates, batch, step),
         "",
     ]
+
+
+def h5_table(rates: Mapping[int, float], batch: int, step: float) -> str:
+    """The HDF5 table: per loader worker count, samples/s (``rates``), batches/s of ``batch``, the
+    steps/s they feed with 4x headroom, and whether that reaches ``step`` (the training step's steps/s)."""
+    return markdown_table(["loader workers", "samples/s", "batches/s", "steps/s fed with 4x headroom", "4x the step"],
+                          [[str(w), f"{r:.0f}", f"{r / batch:.2f}", f"{r / batch / 4:.2f}",
+                            "yes" if r / batch / 4 >= step else "no"] for w, r in rates.items()], "rrrrc")
