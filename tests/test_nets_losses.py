@@ -606,7 +606,7 @@ def test_the_bootstrap_depth_motion_net_with_a_motion_prior_starts_at_that_motio
     assert torch.allclose(q.motion[:, 3:] - p.motion[:, 3:], torch.full((1, 3), 0.1), atol=1e-6)
     with pytest.raises(ValueError, match="dm1_prior: expected one of"):
         DeMoN("v1", 0.25, (64, 64), dm1_prior="lmeds")
-    with pytest.raises(ValueError, match="ransac_prior reads flow1.s classical prior flow; set flow1_prior"):
+    with pytest.raises(ValueError, match=r"ransac_prior reads flow1.s classical prior flow; set flow1_prior"):
         DeMoN("v1", 0.25, (64, 64), dm1_prior="ransac_prior")
 
 
