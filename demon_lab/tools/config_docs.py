@@ -1,5 +1,6 @@
 """``python -m demon_lab.config_docs [--check]``: writes ``docs/config.md``, every key of the job's
-configuration, from the configs themselves.
+configuration, from the configs themselves (and, beside it, ``docs/cli.md``,
+``docs/troubleshooting.md`` and ``docs/metrics.md``: :mod:`demon_lab.tools.reference_docs`).
 
 Three tables, each read from where its values are defined, so that the page cannot drift from them:
 
@@ -256,17 +257,29 @@ def page() -> str:
     ])
 
 
+def pages(out: Path) -> dict[Path, str]:
+    """The generated reference pages: ``out`` (the configuration) and, beside it, the command lines
+    and the troubleshooting page (:mod:`demon_lab.tools.reference_docs`)."""
+    from demon_lab.tools import reference_docs
+
+    return {out: page(), out.with_name("cli.md"): reference_docs.quiet(reference_docs.cli_page),
+            out.with_name("troubleshooting.md"): reference_docs.troubleshooting_page(),
+            out.with_name("metrics.md"): reference_docs.metrics_page()}
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m demon_lab.config_docs", description=__doc__.splitlines()[0])
-    parser.add_argument("--out", type=Path, default=DEFAULT_OUT)
-    parser.add_argument("--check", action="store_true", help="write nothing; exit 1 if --out is not current")
+    parser.add_argument("--out", type=Path, default=DEFAULT_OUT,
+                        help="the configuration page; cli.md and troubleshooting.md are written beside it")
+    parser.add_argument("--check", action="store_true", help="write nothing; exit 1 if a page is not current")
     args = parser.parse_args(argv)
-    text = page()
+    written = pages(args.out)
     if args.check:
-        current = args.out.is_file() and args.out.read_text() == text
-        if not current:
-            print(f"error: {args.out} is not current: run python -m demon_lab.config_docs", file=sys.stderr)
-        return 0 if current else 1
-    args.out.write_text(text)
-    print(f"wrote {args.out}")
+        stale = [str(path) for path, text in written.items() if not (path.is_file() and path.read_text() == text)]
+        if stale:
+            print(f"error: {', '.join(stale)} not current: run python -m demon_lab.config_docs", file=sys.stderr)
+        return 1 if stale else 0
+    for path, text in written.items():
+        path.write_text(text)
+        print(f"wrote {path}")
     return 0
