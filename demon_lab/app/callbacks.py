@@ -22,6 +22,7 @@ marks the parent FINISHED or FAILED and exits non-zero if any failed.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import sys
 from collections.abc import Sequence
@@ -56,12 +57,14 @@ class MultirunTracking(Callback):
         """Once the sweeper has checked every job (:mod:`demon_lab.app.sweeper`), before the first
         launch: the local server, if the sweep asks for one, and the sweep's parent run (a sweep
         issued again continues its run)."""
+        from demon_lab.pipeline.settings import TrackingSettings
         from demon_lab.pipeline.tracking import TAG, Tracker
 
-        if config.tracking.get("server"):
+        server = TrackingSettings.of(config.tracking, "tracking").server
+        if server is not None:
             from demon_lab.pipeline.tracking import LocalServer, TrackingError
 
-            self.server = LocalServer(config.tracking.server)
+            self.server = LocalServer(**dataclasses.asdict(server))
             try:
                 self.server.start()
             except TrackingError as e:

@@ -11,6 +11,7 @@ run id to the job in :data:`PARENT_RUN`, in the job's own process, just before t
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import sys
@@ -306,7 +307,7 @@ def main_task(cfg: DictConfig) -> dict[str, Any] | None:
         if settings.server is not None and global_rank(cfg) == 0:  # DDP workers only train
             from demon_lab.pipeline.tracking import LocalServer
 
-            server = LocalServer(cfg.tracking.server)
+            server = LocalServer(**dataclasses.asdict(settings.server))
             if server.uri == SWEEP_SERVER.get():
                 server = None  # the sweep's server is up and stops with the sweep
             else:

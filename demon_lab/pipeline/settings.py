@@ -162,6 +162,23 @@ class Sources:
 
 
 @dataclass(frozen=True)
+class Nested:
+    """A section inside a section (null where the key may be left out or null)."""
+
+    section: type
+
+    def __call__(self, key: str, value: Any):
+        if value is None:
+            return None
+        if not isinstance(value, Mapping):
+            raise ConfigError(f"{key}: expected a mapping, got {value!r}")
+        return self.section.of(OmegaConf.create(value), key)
+
+    def allowed(self) -> str:
+        return "null or a mapping"
+
+
+@dataclass(frozen=True)
 class Free:
     """A value passed on as it is (a mapping whose own owner checks it, a tag)."""
 
@@ -251,6 +268,17 @@ class EvalSettings(Section):
 
 
 @dataclass(frozen=True)
+class ServerSettings(Section):
+    """``tracking.server`` (``tracking=local_server``): an MLflow server on 127.0.0.1 for one command
+    (:class:`demon_lab.pipeline.tracking.LocalServer`)."""
+
+    port: int = setting(Int(1))
+    backend_store_uri: str = setting(Text())
+    artifacts_destination: str = setting(Text())
+    startup_timeout: float = setting(Number())
+
+
+@dataclass(frozen=True)
 class TrackingSettings(Section):
     """``tracking``: the MLflow store and how often a stage logs."""
 
@@ -258,7 +286,7 @@ class TrackingSettings(Section):
     artifact_dir: str = setting(Text())
     log_every_n_steps: int = setting(Int(1))
     val_every_n_steps: int = setting(Int(0))
-    server: Mapping | None = setting(Free(), default=None)
+    server: ServerSettings | None = setting(Nested(ServerSettings), default=None)
 
 
 @dataclass(frozen=True)

@@ -346,11 +346,11 @@ class LocalServer:
     send their metrics to one process instead of each opening the database; the server stops when
     the command ends (atexit, even when a job failed)."""
 
-    def __init__(self, settings: Mapping[str, Any]):
-        self.port = int(settings["port"])
-        self.store = _absolute_sqlite(str(settings["backend_store_uri"]))
-        self.artifacts = Path(str(settings["artifacts_destination"])).resolve()
-        self.startup_timeout = float(settings.get("startup_timeout", 120))
+    def __init__(self, port: int, backend_store_uri: str, artifacts_destination: str, startup_timeout: float = 120.0):
+        self.port = port
+        self.store = _absolute_sqlite(backend_store_uri)
+        self.artifacts = Path(artifacts_destination).resolve()
+        self.startup_timeout = startup_timeout
         self.process: subprocess.Popen | None = None
         self.uri = f"http://127.0.0.1:{self.port}"
 

@@ -304,7 +304,7 @@ def experiments(server: str) -> dict[str, str]:
 @contextlib.contextmanager
 def serve(uri: str, port: int, artifacts: Path) -> Iterator[str]:
     """MLflow's server (the ``mlflow ui`` app) on 127.0.0.1 for the block; yields its address."""
-    server = LocalServer({"port": port, "backend_store_uri": uri, "artifacts_destination": str(artifacts)})
+    server = LocalServer(port, uri, str(artifacts))
     server.start()
     try:
         yield server.uri
