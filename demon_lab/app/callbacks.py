@@ -108,11 +108,11 @@ class MultirunTracking(Callback):
         folders, each with its ``error.txt``, as the command line shows them."""
         for r in job_returns:
             returned = r.return_value if r.status == JobStatus.COMPLETED and isinstance(r._return_value, dict) else {}
-            cfg = r.cfg or {}
-            chain = cfg.get("method", "demon") == "demon"  # (a classical method's summary has no passes)
+            cfg = r.cfg  # (None where Hydra could not compose the job)
+            chain = cfg is None or cfg.method == "demon"  # (a classical method's summary has no passes)
             self.jobs.append({"overrides": list(r.overrides or []), "run_id": returned.get("run_id"),
                               "status": returned.get("status") or ("FAILED" if r.status == JobStatus.FAILED else "-"),
-                              "pass": cfg.get("iterations", "-") if chain else "baseline"})
+                              "pass": ("-" if cfg is None else cfg.iterations) if chain else "baseline"})
             if r.status == JobStatus.FAILED:
                 folder = Path(r.hydra_cfg.hydra.runtime.output_dir)
                 self.failed.append(str(folder.relative_to(Path.cwd()) if folder.is_relative_to(Path.cwd())
