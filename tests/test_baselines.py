@@ -358,8 +358,8 @@ def sun3d_pair():
 @pytest.mark.parametrize("method", ["base_ff", "base_sift", "base_5pt"])
 def test_each_baseline_uses_view_2s_own_intrinsics(sun3d_pair, method):
     """The SUN3D pair with view 2 zoomed by 1.2 (as in pairs from two cameras): the motion is still
-    recovered (0.03-0.66 degrees of rotation measured, docs/results.md). Read with view 1's camera
-    for both views it is off by 4.5-5 degrees (what the baselines did before)."""
+    recovered (0.03-0.66 degrees of rotation measured, docs/notes/2026-12-baselines-own-camera.md).
+    Read with view 1's camera for both views it is off by 4.5-5 degrees (what the baselines did before)."""
     s = zoomed_view2(sun3d_pair)
     errors = metrics.motion_errors(getattr(M, method)(s, BaselineConfig.default())["motion"], s["motion"].numpy())
     assert errors["rot_deg"] < 1.0 and errors["tran_deg"] < 8.0, errors
@@ -387,8 +387,8 @@ def test_base_oracle_uses_view_2s_own_intrinsics():
 
 def test_base_5pt_on_the_real_sun3d_pair_at_its_native_size(sun3d_pair):
     """640x480, 225 SIFT matches: the 5-point RANSAC with its 1-pixel threshold is within a degree
-    of rotation and 8 of translation (0.31 and 5.29 measured, docs/results.md), where the 8-point
-    RANSAC of Base-SIFT, with the same matches, is off by more; a 2.5-pixel threshold (the 8-point
+    of rotation and 8 of translation (0.31 and 5.29 measured, docs/notes/2026-12-baselines-own-camera.md),
+    where the 8-point RANSAC of Base-SIFT, with the same matches, is off by more; a 2.5-pixel threshold (the 8-point
     methods' at this width) costs the 5-point RANSAC a few times that translation error."""
     s = sun3d_pair
     assert tuple(s["image1"].shape[1:]) == (480, 640)

@@ -51,7 +51,7 @@ METHODS = ("base_ff", "base_sift", "base_5pt", "base_mat_f", "base_oracle")
 
 FIVE_POINT_THRESHOLD_PX = 1.0
 """Base-5pt's RANSAC threshold in pixels of the image it reads, at any size: SIFT locates a keypoint
-to about a pixel whatever the resolution (docs/results.md#classical-baselines measures 2.5 pixels,
+to about a pixel whatever the resolution (docs/notes/2026-12-baselines-own-camera.md measures 2.5 pixels,
 the 8-point methods' threshold at 640x480, against it)."""
 
 

@@ -97,7 +97,7 @@ MEDIAN9_NETWORK = ((0, 1), (3, 4), (6, 7), (1, 2), (4, 5), (7, 8), (0, 1), (3, 4
 """A 25-comparator sorting network for 9 values (it sorts all 512 inputs of 0s and 1s, hence every
 input: tests/test_geometry.py): the 3x3 windows sorted by 50 element-wise min/max ops rather than by
 ``Tensor.sort`` over a window dimension, the slower of the two on the cpu scale's batches (the speed-up:
-docs/cpu_scale.md, "Time and memory")."""
+docs/notes/2026-11-cpu-profile.md, "Time and memory")."""
 
 
 @float32

@@ -56,7 +56,7 @@ def sig_loss(pred: torch.Tensor, gt: torch.Tensor, eps_pred: float = 1e-3, eps_g
 def _sig_term(weight: float, pred: torch.Tensor, gt: torch.Tensor, *eps: float) -> torch.Tensor:
     """``weight * sig_loss(pred, gt, *eps)``, and an exact zero without computing the sig images
     when the weight is 0 (a ramp not yet started, or a preset without the term): the loss and its
-    gradients are bit for bit those of the full product, without its cost (docs/cpu_scale.md, "Time
+    gradients are bit for bit those of the full product, without its cost (docs/notes/2026-11-cpu-profile.md, "Time
     and memory")."""
     if weight == 0:
         return pred.new_zeros(())

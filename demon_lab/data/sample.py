@@ -332,7 +332,7 @@ def augment(sample: Sample, rng: np.random.Generator, normals: bool = True) -> S
     ``normals=False`` returns the sample without its ``normals`` map instead of recomputing it from
     the augmented depth: the training losses derive their normals from the depth pyramid
     (:class:`demon_lab.core.losses.GroundTruth`), so training skips a map nobody reads (its cost:
-    docs/cpu_scale.md, "Time and memory")."""
+    docs/notes/2026-11-cpu-profile.md, "Time and memory")."""
     rotate, flip = rng.random() < 0.5, rng.random() < 0.5
     if rotate:
         sample = rotate_180(sample, normals=normals and not flip)  # the mirror recomputes them

@@ -161,7 +161,7 @@ def depth_motion_net_inputs(image2_2: torch.Tensor, flow: torch.Tensor, conf: to
     flow and its confidence, and (iterative net) the inverse depth triangulated from the flow with
     the previous motion, clipped to [0, 50] as v2 does; non-finite values set to 0. demon_lab
     clips for v1 too, because it trains v1 from scratch and an untrained flow net's triangulated
-    inverse depth is unbounded (docs/cpu_scale.md, "The triangulated depth is clipped for v1 too").
+    inverse depth is unbounded (docs/notes/2026-11-cpu-profile.md, "The triangulated depth is clipped for v1 too").
     ``compat="demon_original"``: what
     ``depthmotion_block_demon_original`` feeds its net, i.e. DeMoN's ``warp2d``, no clipping and
     the flow and confidence as they are."""

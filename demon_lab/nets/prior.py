@@ -5,7 +5,7 @@ DeMoN's bootstrap flow net reads the two images alone; its iterative flow net re
 bootstrap net a prior in the same form, from a classical optical flow of the pair: OpenCV's DIS
 flow (Kroeger et al. 2016), the flow Base-FF reads (:mod:`demon_lab.baselines.methods`), computed
 at the input resolution and averaged down to level 2. The net predicts a correction of it
-(docs/cpu_scale.md, "Classical priors for the bootstrap nets").
+(docs/notes/2026-11-cpu-profile.md, "Classical priors for the bootstrap nets").
 
 DeMoN's bootstrap depth-motion net reads the flow alone; its iterative one also reads the depth
 triangulated from the flow with the previous motion. ``model.dm1_prior=ransac`` gives the bootstrap
@@ -47,7 +47,7 @@ PRIORS = (None, "dis", "dis_x2")
 DIS_UPSAMPLE = {"dis": 1, "dis_x2": 2}
 """How much each DIS prior upsamples the pair (bicubic) before the flow is computed: at the ``cpu``
 scale's 128x96 DIS finds sub-pixel matches on the 2x images that it misses on the pair itself
-(docs/cpu_scale.md, "A finer classical prior")."""
+(docs/notes/2026-11-cpu-profile.md, "A finer classical prior")."""
 MOTION_PRIORS = (None, "ransac", "ransac_prior")
 """``model.dm1_prior``: none, 5-point RANSAC on the flow ``dm1`` reads (``flow1``'s), or on
 ``flow1``'s classical prior flow (needs ``model.flow1_prior``)."""

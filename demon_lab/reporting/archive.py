@@ -3,7 +3,7 @@
 A study trained on a cluster is reported on a laptop, and one whose seeds were trained on different
 machines or days is reported as one: ``python -m demon_lab.report NAME --export FILE`` writes the
 runs of the study's experiments, and ``python -m demon_lab.report --import FILE`` adds them to
-another store (docs/results.md, "Run archives").
+another store (docs/running.md, "Run archives"; docs/guides/archives.md).
 
 An archive is a zip file: ``runs.json`` (per run: its experiment's name, run name, status, start and
 end times, tags, params and every metric's full history with steps and timestamps) and

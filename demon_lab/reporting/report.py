@@ -257,7 +257,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--artifact-dir", default="mlartifacts",
                         help="with --import, a local store: where imported artifacts go (tracking.artifact_dir)")
     parser.add_argument("--out", type=Path, default=Path("reports"))
-    parser.add_argument("--studies", type=Path, default=STUDIES, help=argparse.SUPPRESS)
+    parser.add_argument("--studies", type=Path, default=STUDIES, metavar="FOLDER",
+                        help="a folder of study specs of your own, with a paper_numbers.csv (default: the shipped "
+                             "ablations/)")
     args = parser.parse_args(argv)
     names = sorted(p.stem for p in args.studies.glob("*.yaml")) if args.all else list(args.names)
     if not names and not args.imports and not args.experiments and not args.docs and not args.data_stats:

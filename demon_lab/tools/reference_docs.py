@@ -70,6 +70,8 @@ def options_table(parser: argparse.ArgumentParser) -> list[str]:
         if action.nargs in ("*", "+"):
             argument += " ..."
         default = action.default
+        if isinstance(default, Path) and default.is_absolute():  # (a folder of the package: where it is installed)
+            default = f"{default.name}/ of the package"
         shown = "" if default in (None, False, [], argparse.SUPPRESS) or not takes else f"`{default}`"
         lines.append(f"| {name} | {argument} | {_cell(shown)} | {_cell(action.help or '')} |")
     return lines
@@ -200,17 +202,28 @@ def _template(node: ast.AST) -> str | None:
     return None
 
 
+def _scopes(tree: ast.AST) -> dict[ast.AST, str]:
+    """Each node of a module's tree and its qualified scope (``Class.method``, ``function``, ``module``)."""
+    scopes: dict[ast.AST, str] = {}
+    stack = [(tree, "")]
+    while stack:
+        node, name = stack.pop()
+        for child in ast.iter_child_nodes(node):
+            inner = name
+            if isinstance(child, ast.FunctionDef | ast.AsyncFunctionDef | ast.ClassDef):
+                inner = f"{name}.{child.name}" if name else child.name
+            scopes[child] = inner or "module"
+            stack.append((child, inner))
+    return scopes
+
+
 def raised_messages() -> dict[str, list[tuple[str, str]]]:
     """Group name -> sorted unique (message template, where) of every ``raise`` in the package."""
     groups: dict[str, set[tuple[str, str]]] = {g[0]: set() for g in GROUPS}
     for path in sorted(PACKAGE.rglob("*.py")):
         rel = path.relative_to(PACKAGE).as_posix()
         tree = ast.parse(path.read_text())
-        scopes = {}
-        for node in ast.walk(tree):
-            if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef | ast.ClassDef):
-                for child in ast.walk(node):
-                    scopes[child] = node.name  # (inner definitions come later in the walk: the innermost wins)
+        scopes = _scopes(tree)
         for node in ast.walk(tree):
             if not (isinstance(node, ast.Raise) and isinstance(node.exc, ast.Call)
                     and isinstance(node.exc.func, ast.Name) and node.exc.args):

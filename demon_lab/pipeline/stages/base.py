@@ -97,7 +97,7 @@ class StageModule(L.LightningModule):
             [{"params": decay, "weight_decay": self.weight_decay}, {"params": no_decay, "weight_decay": 0.0}],
             lr=self.base_lr, betas=(0.9, 0.999), eps=1e-6,
             foreach=True)  # multi-tensor Adam: the same update, bit for bit on the CPU, in less time
-        # (docs/cpu_scale.md, "Time and memory": the exact speed-ups)
+        # (docs/notes/2026-11-cpu-profile.md, "Time and memory": the exact speed-ups)
         scheduler = torch.optim.lr_scheduler.LambdaLR(
             optimizer, lambda step: learning_rate(step, self.steps, self.base_lr, self.lr_schedule,
                                                   self.warmup_steps) / self.base_lr)
@@ -146,7 +146,7 @@ class StageModule(L.LightningModule):
     def _logging_step(self) -> bool:
         """Whether Lightning writes this step's values to the logger (every ``log_every_n_steps``,
         by its own rule): only those steps collect the values, since the others would drop them
-        (the cost: docs/cpu_scale.md, "Time and memory")."""
+        (the cost: docs/notes/2026-11-cpu-profile.md, "Time and memory")."""
         trainer = self._trainer
         return trainer is None or bool(trainer._logger_connector.should_update_logs)
 

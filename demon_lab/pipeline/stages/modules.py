@@ -24,11 +24,11 @@ class FlowStage(StageModule):
     ``sig_start`` (a fraction of the stage, default 0 as DeMoN; 1: never) holds the sig weights at 0 until
     then and starts their ramp there: a stage far shorter than DeMoN's lets the net find correspondence
     with the flow term alone first, since near zero flow, where an untrained net starts, the sig terms'
-    gradient outweighs the flow term's (the ratios: docs/cpu_scale.md, "The flow stages train without
+    gradient outweighs the flow term's (the ratios: docs/notes/2026-11-cpu-profile.md, "The flow stages train without
     their sig terms").
 
     ``level5_fade`` (a fraction of the stage, default DeMoN's 1/3) is how long the level-5 terms take
-    to fade out: an option for probes of a short schedule (its probe: docs/cpu_scale.md, "What limits
+    to fade out: an option for probes of a short schedule (its probe: docs/notes/2026-11-cpu-profile.md, "What limits
     learning: probes of the recipe").
     """
 
