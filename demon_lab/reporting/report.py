@@ -109,7 +109,8 @@ def report(name: str, uri: str, out_dir: Path, directory: Path = STUDIES,
     result = build(spec, runs)
     result["stale"] = int((everything.loc[~same, "status"] == "FINISHED").sum())
     result["versions"] = ", ".join(f"{k.removeprefix(TAG)} {v}" for k, v in current.items())
-    paper_rows = paper_numbers(directory / "paper_numbers.csv")
+    own = directory / "paper_numbers.csv"  # a folder of the user's own specs may bring its own, else the shipped
+    paper_rows = paper_numbers(own if own.is_file() else STUDIES / "paper_numbers.csv")
     from demon_lab.reporting import provenance
 
     try:
@@ -258,8 +259,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                         help="with --import, a local store: where imported artifacts go (tracking.artifact_dir)")
     parser.add_argument("--out", type=Path, default=Path("reports"))
     parser.add_argument("--studies", type=Path, default=STUDIES, metavar="FOLDER",
-                        help="a folder of study specs of your own, with a paper_numbers.csv (default: the shipped "
-                             "ablations/)")
+                        help="a folder of study specs of your own (its paper_numbers.csv, if it has one, else the "
+                             "shipped one; default: the shipped ablations/)")
     args = parser.parse_args(argv)
     names = sorted(p.stem for p in args.studies.glob("*.yaml")) if args.all else list(args.names)
     if not names and not args.imports and not args.experiments and not args.docs and not args.data_stats:
