@@ -102,7 +102,7 @@ def test_compat_inputs_are_not_clipped_or_replaced():
     default = flow_net_inputs(image2_2, depth, normals, motion, K)
     assert math.isnan(original[0, 5, 2, 2]) and default[0, 5, 2, 2] == 0
     assert torch.equal(original[:, 3:5], default[:, 3:5])  # both zero the flow of NaN depth
-    with pytest.raises(ValueError, match="variant='v1'"):
+    with pytest.raises(ValueError, match="it needs variant=v1, got v2"):
         DeMoN("v2", 0.0625, (64, 64), compat="demon_original")
     with pytest.raises(ValueError, match="compat"):
         DeMoN("v1", 0.0625, (64, 64), compat="tf")
