@@ -11,6 +11,7 @@ from pathlib import Path
 
 import pytest
 
+from demon_lab.tools.reference_docs import ENTRY_POINTS
 from tests.test_docs import THREE_DECIMALS, _outside_blocks, _reports_text, untraced
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -18,16 +19,9 @@ GUIDES = sorted((ROOT / "docs" / "guides").glob("*.md"))
 PAGES = [ROOT / "README.md", *GUIDES]
 BLOCK = re.compile(r"```(?:bash|sh|shell)\n(.*?)```", re.S)
 ASSIGNMENT = re.compile(r"^[A-Z_][A-Z0-9_]*=\S*$")
-PARSED = {
-    "demon_lab.report": "demon_lab.reporting.report",
-    "demon_lab.dashboard": "demon_lab.reporting.dashboard",
-    "demon_lab.convert": "demon_lab.tools.convert",
-    "demon_lab.bench": "demon_lab.tools.bench",
-    "demon_lab.config_docs": "demon_lab.tools.config_docs",
-    "scripts/device_check.sh": "demon_lab.tools.device_check",
-}
-"""The entry points with an argument parser, by the name a command gives them, and the module of
-its ``main``."""
+PARSED = {command: module for command, module, _ in ENTRY_POINTS}
+"""The entry points with an argument parser (the command-line page's), by the name a command gives
+them, and the module of its ``main``."""
 
 
 def commands(text: str) -> list[list[str]]:
@@ -48,6 +42,7 @@ def commands(text: str) -> list[list[str]]:
 def problem(words: list[str]) -> str | None:
     """Why the command would not start as written (None: it would)."""
     from demon_lab.__main__ import check
+    from demon_lab.resources import STUDIES
     from demon_lab.tools.reference_docs import parser_of
 
     if words[:3] == ["python", "-m", "demon_lab"]:
@@ -71,9 +66,17 @@ def problem(words: list[str]) -> str | None:
 
         parser = parser_of(importlib.import_module(PARSED[target]).main)
         try:
-            parser.parse_args(words[3:] if words[0] == "python" else words[1:])
+            args = parser.parse_args(words[3:] if words[0] == "python" else words[1:])
         except SystemExit:
             return f"{target}: its parser refuses {words}"
+        if target == "demon_lab.report" and args.studies == STUDIES:  # each study it names is a shipped spec
+            from demon_lab.reporting.specs import ReportError, load_spec
+
+            for name in args.names:
+                try:
+                    load_spec(name)
+                except ReportError as e:
+                    return str(e)
         return None
     if target.startswith("demon_lab"):
         return f"{target}: an entry point this test does not know"
@@ -89,6 +92,7 @@ def test_commands_are_found_and_a_broken_one_is_named():
     assert problem(found[0]) is None and problem(found[1]) is None
     assert "refuses" in problem(found[2])
     assert problem(["python", "-m", "demon_lab", "iterations=-1"]) == "iterations: expected an integer >= 0, got -1"
+    assert "no ablations/no_such_study.yaml" in problem(["python", "-m", "demon_lab.report", "no_such_study"])
 
 
 @pytest.mark.slow

@@ -261,6 +261,13 @@ def test_a_job_that_raises_leaves_its_run_failed(tmp_path):
     assert len(stages) == 6 and all(r.info.status == "FINISHED" for r in stages)
 
 
+def test_a_data_config_without_held_apart_sets_validates(tmp_path):
+    """``data.val`` null or left empty: no held-apart curves (a stage with keep_best refuses it)."""
+    from demon_lab.pipeline.validate import validate
+
+    assert validate(compose_config(smoke_overrides(tmp_path, "data.val=null"))).data.val == ()
+
+
 @pytest.mark.parametrize("args, message", [
     (["iterations=-1"], "iterations: expected an integer >= 0"),
     (["threads=0"], "threads: expected an integer >= 1"),
@@ -316,6 +323,8 @@ def test_a_job_that_raises_leaves_its_run_failed(tmp_path):
      "schedule.stages.flow1.keep_best: scores the held-apart sets, and data.val has none"),
     (["+schedule.stages.refine.queue_size=4"], "schedule.stages.refine.queue_size: not an option of a refine stage"),
     (["trainer.reuse_frozen=sometimes"], "trainer.reuse_frozen: expected true or false, got 'sometimes'"),
+    (["data.train=null"], "data.train: expected at least one training source"),
+    (["schedule.stages.iterative.queue_size=-3"], "schedule.stages.iterative.queue_size: expected an integer >= 0"),
     (["baseline.size=[16,16]"], "baseline.size: expected native or [H, W] with sides >= 32 pixels"),
     (["baseline.size=full"], "baseline.size: expected native or [H, W] with sides >= 32 pixels, got full"),
     (["data.real_pair=/does/not/exist"], "data.test[3].path (data.real_pair): /does/not/exist: no such file"),

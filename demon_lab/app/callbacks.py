@@ -22,7 +22,6 @@ marks the parent FINISHED or FAILED and exits non-zero if any failed.
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import sys
 from collections.abc import Sequence
@@ -64,7 +63,7 @@ class MultirunTracking(Callback):
         if server is not None:
             from demon_lab.pipeline.tracking import LocalServer, TrackingError
 
-            self.server = LocalServer(**dataclasses.asdict(server))
+            self.server = LocalServer(**server.arguments())
             try:
                 self.server.start()
             except TrackingError as e:

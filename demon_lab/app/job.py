@@ -11,7 +11,6 @@ run id to the job in :data:`PARENT_RUN`, in the job's own process, just before t
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import logging
 import sys
@@ -77,24 +76,24 @@ def run(cfg: DictConfig) -> dict[str, Any]:
         from demon_lab.core.execution import set_threads
 
         set_threads(job.threads)
-    if cfg.method == "demon":
-        from demon_lab.core.execution import global_rank, world_size
+    if job.method == "demon":
+        from demon_lab.core.execution import global_rank
         from demon_lab.pipeline.stages.training import prepare_chain
 
-        if world_size(cfg) > 1 and global_rank(cfg) != 0:  # a DDP worker: trains; rank 0 tracks and evaluates
+        if job.trainer.world > 1 and global_rank(cfg) != 0:  # a DDP worker: trains; rank 0 tracks and evaluates
             prepare_chain(cfg, None, progress=False)
             return {"status": "worker"}
     from demon_lab.pipeline.identity import run_key
     from demon_lab.pipeline.tracking import Tracker, flatten
 
     key = run_key(cfg)
-    tracker = Tracker(cfg.tracking.uri, cfg.experiment, cfg.tracking.artifact_dir,
+    tracker = Tracker(job.tracking.uri, job.experiment, job.tracking.artifact_dir,
                       local_server=job.tracking.server is not None)
-    if not cfg.force:
+    if not job.force:
         existing = tracker.find_finished(key)
         if existing:
             log.info("skipped: run key %s already has the FINISHED run %s (experiment %r); pass force=true to run "
-                     "it again", key, existing, cfg.experiment)
+                     "it again", key, existing, job.experiment)
             _print_study_rows(cfg)
             return {"status": "skipped", "run_id": existing, "run_key": key}
     record = _run_id_file()
@@ -222,7 +221,7 @@ def _csv(rows: list[dict[str, Any]]) -> str:
     as given (a float to full precision), a missing or NaN value empty."""
     import pandas as pd
 
-    return pd.DataFrame(rows, dtype=object).to_csv(index=False, na_rep="")
+    return pd.DataFrame(rows, dtype=object).to_csv(index=False, na_rep="", lineterminator="\n")
 
 
 def _hydra_output_dir(multirun_only: bool = False) -> Path | None:
@@ -307,7 +306,7 @@ def main_task(cfg: DictConfig) -> dict[str, Any] | None:
         if settings.server is not None and global_rank(cfg) == 0:  # DDP workers only train
             from demon_lab.pipeline.tracking import LocalServer
 
-            server = LocalServer(**dataclasses.asdict(settings.server))
+            server = LocalServer(**settings.server.arguments())
             if server.uri == SWEEP_SERVER.get():
                 server = None  # the sweep's server is up and stops with the sweep
             else:

@@ -84,6 +84,13 @@ def expect_int(key: str, value: Any, minimum: int | None = None) -> int:
     return value
 
 
+def expect_flag(key: str, value: Any) -> bool:
+    """``value`` if it is true or false, else the ConfigError line naming ``key``."""
+    if not isinstance(value, bool):
+        raise ConfigError(f"{key}: expected true or false, got {value!r}")
+    return value
+
+
 def expect_positive(key: str, value: Any, allow_zero: bool = False) -> float:
     """``value`` as a float if it is a positive (or, with ``allow_zero``, non-negative) number."""
     if isinstance(value, bool) or not isinstance(value, int | float) or not (value >= 0 if allow_zero else value > 0):

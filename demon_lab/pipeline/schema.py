@@ -27,7 +27,14 @@ from typing import Any, ClassVar
 from omegaconf import DictConfig, OmegaConf
 
 from demon_lab.core.losses import DEPTH_MOTION_WEIGHTS, FLOW_SIG_WEIGHTS, FLOW_WEIGHTS, REFINE_WEIGHTS
-from demon_lab.pipeline.config import ConfigError, expect_choice, expect_fraction, expect_int, expect_positive
+from demon_lab.pipeline.config import (
+    ConfigError,
+    expect_choice,
+    expect_flag,
+    expect_fraction,
+    expect_int,
+    expect_positive,
+)
 
 LR_SCHEDULES = ("released", "supplementary")
 """``schedule.lr_schedule``: :func:`demon_lab.pipeline.stages.base.learning_rate` implements both."""
@@ -64,8 +71,7 @@ class ModelSpec:
         except ValueError as e:
             raise ConfigError(str(e)) from None
         for key in ("channels_last", "compile"):
-            if not isinstance(values[key], bool):
-                raise ConfigError(f"model.{key}: expected true or false, got {values[key]!r}")
+            expect_flag(f"model.{key}", values[key])
         correlation = values["correlation"]
         return cls(**{**{f.name: values[f.name] for f in fields(cls)},
                       "width": float(values["width"]),
@@ -263,6 +269,7 @@ class IterativeStageSpec(StageSpec):
     def check(cls, name: str, values: dict[str, Any]) -> None:
         super().check(name, values)
         expect_fraction(f"schedule.stages.{name}.sig_start", values["sig_start"], note=" (1: never)")
+        expect_int(f"schedule.stages.{name}.queue_size", values["queue_size"], 0)
 
     def trained_nets(self) -> tuple[str, ...]:
         return ("flow2", "dm2")

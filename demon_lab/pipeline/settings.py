@@ -20,6 +20,7 @@ check (:func:`allowed`).
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Mapping
 from dataclasses import MISSING, dataclass, field, fields
 from typing import Any
@@ -30,7 +31,7 @@ from demon_lab.baselines.methods import METHODS as BASELINES
 from demon_lab.baselines.methods import BaselineConfig
 from demon_lab.core.losses import check_weights
 from demon_lab.nets.chain import ORACLES
-from demon_lab.pipeline.config import ConfigError, expect_choice, expect_int, expect_positive
+from demon_lab.pipeline.config import ConfigError, expect_choice, expect_flag, expect_int, expect_positive
 from demon_lab.pipeline.schema import LR_SCHEDULES, ModelSpec, StageSpec, stage_spec
 
 METHODS = ("demon", *BASELINES)
@@ -58,12 +59,14 @@ class Int:
 @dataclass(frozen=True)
 class Number:
     allow_zero: bool = False
+    optional: bool = False
 
-    def __call__(self, key: str, value: Any) -> float:
-        return expect_positive(key, value, self.allow_zero)
+    def __call__(self, key: str, value: Any) -> float | None:
+        return None if value is None and self.optional else expect_positive(key, value, self.allow_zero)
 
     def allowed(self) -> str:
-        return "a non-negative number" if self.allow_zero else "a positive number"
+        return ("null or " if self.optional else "") + ("a non-negative number" if self.allow_zero
+                                                        else "a positive number")
 
 
 @dataclass(frozen=True)
@@ -81,9 +84,7 @@ class Choice:
 @dataclass(frozen=True)
 class Flag:
     def __call__(self, key: str, value: Any) -> bool:
-        if not isinstance(value, bool):
-            raise ConfigError(f"{key}: expected true or false, got {value!r}")
-        return value
+        return expect_flag(key, value)
 
     def allowed(self) -> str:
         return "true | false"
@@ -148,17 +149,18 @@ class Uri:
 
 @dataclass(frozen=True)
 class Sources:
-    """A list of data sources (``_target_`` nodes, instantiated where they are read), kept as nodes."""
+    """A list of data sources (``_target_`` nodes, instantiated where they are read), kept as nodes;
+    null or left out: none."""
 
-    at_least_one: str | None = None
+    required: bool = False
 
     def __call__(self, key: str, value: Any) -> tuple:
-        if not value and self.at_least_one:
-            raise ConfigError(f"{key}: {self.at_least_one}")
+        if not value and self.required:
+            raise ConfigError(f"{key}: expected at least one training source")
         return tuple(value or ())
 
     def allowed(self) -> str:
-        return "a list of sources" + (" (at least one)" if self.at_least_one else "")
+        return "a list of sources" + (" (at least one)" if self.required else "")
 
 
 @dataclass(frozen=True)
@@ -215,7 +217,7 @@ class Section:
                 if f.default is MISSING:
                     raise ConfigError(f"{where}{f.name}: missing (every config sets it)")
                 continue
-            raw = node._get_node(f.name) if isinstance(check, Sources) else node[f.name]
+            raw = node[f.name]  # (resolved; a list of sources stays a list of nodes)
             if isinstance(raw, DictConfig | ListConfig) and not isinstance(check, Sources):
                 raw = OmegaConf.to_container(raw, resolve=True)
             values[f.name] = check(f"{where}{f.name}", raw)
@@ -237,7 +239,7 @@ class DataSettings(Section):
     size: tuple[int, int] = setting(Size())
     batch_size: int = setting(Int(1))
     num_workers: int = setting(Int(0))
-    train: tuple = setting(Sources("expected at least one training source"))
+    train: tuple = setting(Sources(required=True))
     test: tuple = setting(Sources())
     val: tuple = setting(Sources(), default=())
 
@@ -275,7 +277,12 @@ class ServerSettings(Section):
     port: int = setting(Int(1))
     backend_store_uri: str = setting(Text())
     artifacts_destination: str = setting(Text())
-    startup_timeout: float = setting(Number())
+    startup_timeout: float | None = setting(Number(optional=True), default=None)
+    """Seconds for the server to answer; null or left out: :class:`~demon_lab.pipeline.tracking.LocalServer`'s."""
+
+    def arguments(self) -> dict[str, Any]:
+        """:class:`~demon_lab.pipeline.tracking.LocalServer`'s keyword arguments (its own default where unset)."""
+        return {k: v for k, v in dataclasses.asdict(self).items() if v is not None}
 
 
 @dataclass(frozen=True)
@@ -295,8 +302,9 @@ class ScaleSettings(Section):
 
     name: str = setting(Text())
     batch_size: int = setting(Int(1))
-    checkpoint_every: int = setting(Int(1))
-    queue_size: int = setting(Int(1))
+    checkpoint_every: int = setting(Int(0))
+    """(0: Lightning's checkpoint every step, as 1)"""
+    queue_size: int = setting(Int(0))
     steps: Mapping = setting(Free())
 
 
@@ -347,7 +355,7 @@ class JobSettings(Section):
     loss: Mapping[str, float]
 
     @classmethod
-    def of(cls, cfg: DictConfig, where: str = "") -> JobSettings:
+    def of(cls, cfg: DictConfig) -> JobSettings:
         """``cfg`` as settings, or its first error as one ConfigError line."""
         own = cls.values(cfg, "")
         if own["method"] != "demon" and own["oracle"] is not None:

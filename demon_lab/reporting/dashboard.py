@@ -319,8 +319,8 @@ RUNS_RENDERED = ("Boolean(document.querySelector('.ag-center-cols-container .ag-
 
 def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m demon_lab.dashboard", description=__doc__.splitlines()[0])
-    parser.add_argument("--tracking-uri", default=os.environ.get("MLFLOW_TRACKING_URI", "sqlite:///mlflow.db"),
-                        help="a sqlite:/// store (default: ./mlflow.db)")
+    parser.add_argument("--tracking-uri", help="a sqlite:/// store (default: $MLFLOW_TRACKING_URI, else "
+                                               "sqlite:///mlflow.db)")
     parser.add_argument("--port", type=int, default=5000)
     parser.add_argument("--artifacts", type=Path, default=Path("mlartifacts"),
                         help="where runs of experiments created through this server keep artifacts")
@@ -334,6 +334,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                         help="what --screenshot shows: the runs with --columns (default), or the study report on "
                              "the newest sweep parent run that has one")
     args = parser.parse_args(argv)
+    args.tracking_uri = args.tracking_uri or os.environ.get("MLFLOW_TRACKING_URI", "sqlite:///mlflow.db")
     if not args.tracking_uri.startswith("sqlite:///"):
         print(f"error: --tracking-uri {args.tracking_uri!r}: expected a sqlite:/// store (a running server "
               f"already has its dashboard at its own address)", file=sys.stderr)

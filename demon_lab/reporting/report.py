@@ -254,7 +254,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--docs", action="store_true",
                         help="last write the result tables between <!-- report: STUDY TABLE SET --> markers in "
                              "README.md and docs/ from the reports (run from the repository's root)")
-    parser.add_argument("--tracking-uri", default=os.environ.get("MLFLOW_TRACKING_URI", "sqlite:///mlflow.db"))
+    parser.add_argument("--tracking-uri", help="the MLflow store (default: $MLFLOW_TRACKING_URI, else sqlite:///mlflow.db)")
     parser.add_argument("--artifact-dir", default="mlartifacts",
                         help="with --import, a local store: where imported artifacts go (tracking.artifact_dir)")
     parser.add_argument("--out", type=Path, default=Path("reports"))
@@ -262,6 +262,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                         help="a folder of study specs of your own (its paper_numbers.csv, if it has one, else the "
                              "shipped one; default: the shipped ablations/)")
     args = parser.parse_args(argv)
+    args.tracking_uri = args.tracking_uri or os.environ.get("MLFLOW_TRACKING_URI", "sqlite:///mlflow.db")
     names = sorted(p.stem for p in args.studies.glob("*.yaml")) if args.all else list(args.names)
     if not names and not args.imports and not args.experiments and not args.docs and not args.data_stats:
         parser.error("name a study spec, pass --all, --experiment NAME, --data-stats or --docs")

@@ -153,7 +153,7 @@ def write_csv(spec, result, paper_rows) -> str:
                     lines.append([table["name"], dataset, row["label"], c, cl.mean, cl.std, cl.ci95, cl.n,
                                   " ".join(f"{v:.6g}" for v in cl.values), paper.get(c, math.nan),
                                   source.get("design", ""), source.get("config", ""), source.get("runs", "")])
-    return pd.DataFrame(lines, columns=list(CSV_COLUMNS)).to_csv(index=False, na_rep="")
+    return pd.DataFrame(lines, columns=list(CSV_COLUMNS)).to_csv(index=False, na_rep="", lineterminator="\n")
 
 
 def write_tex(spec, result, info, paper_rows) -> str:

@@ -270,7 +270,8 @@ def pages(out: Path) -> dict[Path, str]:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m demon_lab.config_docs", description=__doc__.splitlines()[0])
     parser.add_argument("--out", type=Path, default=DEFAULT_OUT,
-                        help="the configuration page; cli.md and troubleshooting.md are written beside it")
+                        help="the configuration page; cli.md, troubleshooting.md and metrics.md are written "
+                             "beside it")
     parser.add_argument("--check", action="store_true", help="write nothing; exit 1 if a page is not current")
     args = parser.parse_args(argv)
     written = pages(args.out)

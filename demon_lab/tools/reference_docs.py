@@ -25,7 +25,8 @@ ENTRY_POINTS = (
     ("demon_lab.dashboard", "demon_lab.reporting.dashboard", "The MLflow dashboard on the tracking store"),
     ("demon_lab.convert", "demon_lab.tools.convert", "DeMoN's released TensorFlow weights to a demon_lab weights file"),
     ("demon_lab.bench", "demon_lab.tools.bench", "Throughput of the special layers, the data and the stages"),
-    ("demon_lab.config_docs", "demon_lab.tools.config_docs", "This page, docs/config.md and docs/troubleshooting.md"),
+    ("demon_lab.config_docs", "demon_lab.tools.config_docs",
+     "docs/config.md and, beside it, this page, docs/troubleshooting.md and docs/metrics.md"),
     ("scripts/device_check.sh", "demon_lab.tools.device_check", "A bounded check on a GPU machine"),
 )
 """The argparse entry points: (command, module whose ``main`` parses, what it does)."""
@@ -73,7 +74,8 @@ def options_table(parser: argparse.ArgumentParser) -> list[str]:
         if isinstance(default, Path) and default.is_absolute():  # (a folder of the package: where it is installed)
             default = f"{default.name}/ of the package"
         shown = "" if default in (None, False, [], argparse.SUPPRESS) or not takes else f"`{default}`"
-        lines.append(f"| {name} | {argument} | {_cell(shown)} | {_cell(action.help or '')} |")
+        meaning = parser._get_formatter()._expand_help(action) if action.help else ""  # (%(default)s filled in)
+        lines.append(f"| {name} | {argument} | {_cell(shown)} | {_cell(meaning)} |")
     return lines
 
 
@@ -170,9 +172,11 @@ GROUPS = (
 )
 """Each group: the exception classes it holds (the first word), its heading, its fix."""
 ALIASES = {"CheckpointFormatError": "CheckpointError", "DesignMixError": "ReportError"}
-CONFIG_MODULES = ("nets/chain.py", "nets/blocks.py", "baselines/methods.py", "core/losses.py", "core/execution.py")
-"""Modules whose ValueErrors reach the user as configuration lines (the chain's, the baselines' and the
-losses' own rules, which the typed settings call)."""
+CONFIG_SCOPES = {"nets/chain.py": "check_options", "nets/blocks.py": "check_correlation",
+                 "baselines/methods.py": "BaselineConfig", "core/losses.py": "check_weights",
+                 "core/execution.py": "normalize_precision"}
+"""The functions whose ValueErrors reach the user as configuration lines (the chain's, the baselines',
+the losses' and the precision's own rules, which the typed settings call), by module."""
 
 
 READABLE = {
@@ -229,7 +233,7 @@ def raised_messages() -> dict[str, list[tuple[str, str]]]:
                     and isinstance(node.exc.func, ast.Name) and node.exc.args):
                 continue
             kind = ALIASES.get(node.exc.func.id, node.exc.func.id)
-            if kind == "ValueError" and rel in CONFIG_MODULES:
+            if kind == "ValueError" and scopes.get(node, "").startswith(CONFIG_SCOPES.get(rel, "\0")):
                 kind = "ConfigError"
             if kind not in groups:
                 continue

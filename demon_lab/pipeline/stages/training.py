@@ -25,7 +25,7 @@ from demon_lab.core.execution import (
     resolve_accelerator,
 )
 from demon_lab.nets.chain import DeMoN
-from demon_lab.pipeline.schema import FlowStageSpec, stage_spec
+from demon_lab.pipeline.schema import FlowStageSpec
 from demon_lab.pipeline.settings import JobSettings
 from demon_lab.pipeline.stages import modules
 from demon_lab.pipeline.stages.cache import StageDir, atomic_checkpoint_io, load_checkpoint
@@ -87,7 +87,7 @@ def train_stage(cfg: DictConfig, chain: DeMoN, stage: StageDir, logger: L.pytorc
                                   pin_memory=resolve_accelerator(job.trainer.accelerator) == "cuda")
     checkpoint = L.pytorch.callbacks.ModelCheckpoint(
         dirpath=stage.path, filename="step{step}", save_last=True, save_top_k=0,
-        every_n_train_steps=job.scale.checkpoint_every, auto_insert_metric_name=False)
+        every_n_train_steps=max(1, job.scale.checkpoint_every), auto_insert_metric_name=False)
     callbacks: list = [checkpoint]
     keep = None
     if (logger is not None or spec.keep_best) and job.data.val and global_rank(cfg) == 0:
@@ -158,9 +158,9 @@ def screen_restarts(cfg: DictConfig, chain: DeMoN, stage: StageDir, module: L.Li
     from demon_lab.pipeline.config import instantiate
     from demon_lab.pipeline.stages.validation import StageValidation
 
-    spec = stage_spec(cfg, stage.name)
-    starts, steps = spec.restarts
     job = JobSettings.of(cfg)
+    spec = job.stages[stage.name]
+    starts, steps = spec.restarts
     batch = spec.batch_size or job.data.batch_size
     (net_name,) = spec.trained_nets()
     net = getattr(chain, net_name)
