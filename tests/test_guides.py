@@ -2,8 +2,8 @@
 written once those files exist.
 
 docs/guides/your_own_study.md: its files (the blocks a line ``File `PATH`:`` names) written into a
-folder and its commands run from there: each ``python -m demon_lab`` command composes and validates,
-each other demon_lab command passes only options its ``--help`` lists, the specs load, and the
+folder and its commands run from there: each demon_lab command starts as written (the check of
+tests/test_doc_commands.py), the specs load, and the
 worked example runs at the smoke scale into a temporary store and ends in a report with the spec's
 rows (slow). docs/guides/released_weights.md: its ``text`` commands, shown with the placeholders
 ``DIR`` and ``demon_original.pt``, compose on files of DeMoN's layout and weights of the released
@@ -11,12 +11,10 @@ shapes (slow). The guides' other commands: tests/test_doc_commands.py."""
 
 from __future__ import annotations
 
-import functools
 import os
 import re
 import shlex
 import subprocess
-import sys
 from pathlib import Path
 
 import pytest
@@ -73,34 +71,12 @@ def words(command: str, folder: Path) -> list[str]:
     return shlex.split(command.replace("$PWD", str(folder)), comments=True)
 
 
-@functools.cache
-def help_text(module: str) -> str:
-    done = subprocess.run([sys.executable, "-m", module, "--help"], capture_output=True, text=True, timeout=120)
-    assert done.returncode == 0, f"python -m {module} --help: {done.stderr[-2000:]}"
-    return done.stdout
-
-
-def unlisted(argv: list[str]) -> list[str]:
-    """The options (``--NAME``) of ``python -m demon_lab.NAME ...`` that its ``--help`` does not list."""
-    listed = help_text(argv[2])
-    return [a.split("=")[0] for a in argv[3:] if a.startswith("--")
-            and not re.search(rf"(?<![\w-]){re.escape(a.split('=')[0])}(?![\w-])", listed)]
-
-
 def problems(page_commands: list[str], folder: Path) -> list[tuple[str, str]]:
-    """Each demon_lab command that would not start as written from ``folder``, with the reason."""
-    from demon_lab.__main__ import check
+    """Each demon_lab command that would not start as written from ``folder``, with the reason
+    (tests/test_doc_commands.py's check: composes and validates, or parses with its own parser)."""
+    from tests.test_doc_commands import problem
 
-    found = []
-    for command in page_commands:
-        argv = words(command, folder)
-        if argv[:3] == ["python", "-m", "demon_lab"]:
-            if (why := check(argv[3:])) is not None:
-                found.append((command, why))
-        elif argv[:2] == ["python", "-m"] and argv[2].startswith("demon_lab."):
-            if unknown := unlisted(argv):
-                found.append((command, f"--help does not list {unknown}"))
-    return found
+    return [(command, why) for command in page_commands if (why := problem(words(command, folder))) is not None]
 
 
 def test_the_page_parsers_find_files_commands_and_sections():
@@ -113,9 +89,9 @@ def test_the_page_parsers_find_files_commands_and_sections():
     assert commands(section(page, EXAMPLE)) == commands(page)[:2]
     assert section(page, "## Next").startswith("## Next") and "A worked" not in section(page, "## Next")
     assert words('python -m x "a=[file://$PWD/c]"', Path("/f")) == ["python", "-m", "x", "a=[file:///f/c]"]
-    report = ["python", "-m", "demon_lab.report", "NAME"]
-    assert unlisted([*report, "--studies", "my_studies", "--out=x", "--run"]) == []
-    assert unlisted([*report, "--stud", "x", "--no-such-option"]) == ["--stud", "--no-such-option"]
+    assert problems(["python -m demon_lab.report NAME --studies my_studies --out=x --run"], Path("/f")) == []
+    (refused,) = problems(["python -m demon_lab.report NAME --studies x --no-such-option"], Path("/f"))
+    assert "refuses" in refused[1]
     assert problems(["python -m demon_lab iterations=-1", "mkdir x"], Path("/f")) == [
         ("python -m demon_lab iterations=-1", "iterations: expected an integer >= 0, got -1")]
 

@@ -651,7 +651,7 @@ def test_train_stage_draws_its_samples_with_the_stage_curriculum(tmp_path, monke
             training.train_stage(cfg, chain, stage, logger=None, progress=False)
     easy, plain = samplers
     assert easy.easy_first == (0.25, 0.5) and plain.easy_first is None
-    datasets = training.build_datamodule(cfg, 2, 4).train_sources
+    datasets = training.build_datamodule(cfg, training.JobSettings.of(cfg), 2, 4).train_sources
     assert [list(o) for o in easy.order] == [list(flow_order(d)) for _, d in datasets]
 
 

@@ -15,7 +15,6 @@ from pathlib import Path
 from omegaconf import DictConfig, OmegaConf
 
 from demon_lab.pipeline.config import ConfigError
-from demon_lab.pipeline.schema import stage_spec
 from demon_lab.pipeline.settings import JobSettings
 
 PATH_KEYS = ("path", "root")
@@ -58,7 +57,7 @@ def check_paths(cfg: DictConfig) -> None:
                                   f"directory")
 
 
-def _model_files(cfg: DictConfig, job: JobSettings) -> None:
+def _model_files(job: JobSettings) -> None:
     """``model.weights``: the file exists and fits the chain the config builds."""
     model = job.model
     weights = model.weights
@@ -80,19 +79,20 @@ def _model_files(cfg: DictConfig, job: JobSettings) -> None:
         lacking = [n for n in needed if n not in read_nets(weights, mmap=True)]
         if lacking:
             raise ConfigError(f"model.weights: {weights} has no {', '.join(lacking)}, which train=false with "
-                              f"iterations={cfg.iterations} evaluates (the refinement net is optional)")
+                              f"iterations={job.iterations} evaluates (the refinement net is optional)")
 
 
-def _kept_nets(cfg: DictConfig, stage: str, before: list[str]) -> None:
+def _kept_nets(job: JobSettings, stage: str, before: tuple[str, ...]) -> None:
     """A stage of 0 steps trains nothing: its nets stay as they are at that point of the schedule,
     so each must come from an earlier stage that trains it or from ``model.weights``."""
     from demon_lab.pipeline.weights import read_nets
 
-    earlier = {n for s in before if cfg.schedule.stages[s].steps > 0 for n in stage_spec(cfg, s).trained_nets()}
-    held = set(read_nets(cfg.model.weights, mmap=True)) if cfg.model.weights else set()
-    lacking = [n for n in stage_spec(cfg, stage).trained_nets() if n not in earlier | held]
+    weights = job.model.weights
+    earlier = {n for s in before if job.stages[s].steps > 0 for n in job.stages[s].trained_nets()}
+    held = set(read_nets(weights, mmap=True)) if weights else set()
+    lacking = [n for n in job.stages[stage].trained_nets() if n not in earlier | held]
     if lacking:
-        source = f"{cfg.model.weights} has no" if cfg.model.weights else "model.weights is not set for"
+        source = f"{weights} has no" if weights else "model.weights is not set for"
         raise ConfigError(f"schedule.stages.{stage}.steps: 0 trains nothing and keeps the stage's nets as they "
                           f"are, but no earlier stage trains {', '.join(lacking)} and {source} "
                           f"{', '.join(lacking)}")
@@ -122,11 +122,11 @@ def validate(cfg: DictConfig, here: bool = True) -> JobSettings:
     except Exception as e:
         raise ConfigError(str(e).splitlines()[0]) from None
     job = JobSettings.of(cfg)
-    _model_files(cfg, job)
+    _model_files(job)
     trained = job.schedule.trained()
-    for name in trained:
+    for i, name in enumerate(trained):
         if job.stages[name].steps == 0:
-            _kept_nets(cfg, name, trained[: trained.index(name)])
+            _kept_nets(job, name, trained[:i])
     if here:
         _execution(job)
     check_paths(cfg)

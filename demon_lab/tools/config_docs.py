@@ -170,15 +170,20 @@ def keys_table(cfg: Any, choices: dict[str, str]) -> list[str]:
 
 def schema_allowed(key: str) -> str:
     """What the typed settings (:mod:`demon_lab.pipeline.settings`) accept for ``key``, where a
-    section's field checks it ('' where none does)."""
+    section's field checks it ('' where none does): the dotted key followed from
+    :class:`~demon_lab.pipeline.settings.JobSettings` through its sections."""
+    import typing
+
     from demon_lab.pipeline import settings
 
-    sections = {"": settings.JobSettings, "data": settings.DataSettings, "trainer": settings.TrainerSettings,
-                "eval": settings.EvalSettings, "tracking": settings.TrackingSettings,
-                "scale": settings.ScaleSettings, "schedule": settings.ScheduleSettings}
-    section, _, name = key.rpartition(".")
-    cls = sections.get(section)
-    field = next((f for f in dataclasses.fields(cls) if f.name == name), None) if cls else None
+    cls: Any = settings.JobSettings
+    *path, name = key.split(".")
+    for part in path:
+        hint = typing.get_type_hints(cls).get(part) if dataclasses.is_dataclass(cls) else None
+        cls = hint if isinstance(hint, type) and issubclass(hint, settings.Section) else None
+        if cls is None:
+            return ""
+    field = next((f for f in dataclasses.fields(cls) if f.name == name), None)
     check = field.metadata.get("check") if field is not None else None
     if check is None or check.allowed() == "-":
         return ""
@@ -262,7 +267,7 @@ def pages(out: Path) -> dict[Path, str]:
     and the troubleshooting page (:mod:`demon_lab.tools.reference_docs`)."""
     from demon_lab.tools import reference_docs
 
-    return {out: page(), out.with_name("cli.md"): reference_docs.quiet(reference_docs.cli_page),
+    return {out: page(), out.with_name("cli.md"): reference_docs.cli_page(),
             out.with_name("troubleshooting.md"): reference_docs.troubleshooting_page(),
             out.with_name("metrics.md"): reference_docs.metrics_page()}
 

@@ -12,9 +12,7 @@ from __future__ import annotations
 
 import argparse
 import ast
-import contextlib
 import importlib
-import io
 from collections.abc import Callable
 from pathlib import Path
 
@@ -267,8 +265,3 @@ def troubleshooting_page() -> str:
                 *[f"| {_cell(f'`{m}`' if '`' not in m else m)} | {where} |" for m, where in rows], ""]
     return "\n".join(out)
 
-
-def quiet(fn: Callable[[], str]) -> str:
-    """``fn()`` with whatever it prints while importing swallowed."""
-    with contextlib.redirect_stdout(io.StringIO()):
-        return fn()

@@ -39,17 +39,18 @@ class TrainingDiverged(FloatingPointError):
     loss term (one line)."""
 
 
-def build_datamodule(cfg: DictConfig, batch_size: int, samples: int, skip: int = 0, easy_first=None,
-                     pin_memory: bool = False, layers_first: float | None = None, fresh_scenes: float = 0.0):
+def build_datamodule(cfg: DictConfig, job: JobSettings, batch_size: int, samples: int, skip: int = 0,
+                     easy_first=None, pin_memory: bool = False, layers_first: float | None = None,
+                     fresh_scenes: float = 0.0):
     """Training data for ``samples`` draws in batches of ``batch_size`` (global: under DDP each
     process loads its share of every batch); ``easy_first``, ``layers_first``, ``fresh_scenes``: a
     stage's curriculum (MixtureSampler: the easiest samples first; fresh 2-D layers for the first part
     of the stage; new synthetic scenes at a steady rate per draw);
-    ``pin_memory``: batches in page-locked memory (faster copies to a CUDA device)."""
+    ``pin_memory``: batches in page-locked memory (faster copies to a CUDA device). ``job``: ``cfg``'s
+    settings (the caller's, read once)."""
     from demon_lab.data.datamodule import DemonDataModule, Draws
     from demon_lab.pipeline.config import instantiate
 
-    job = JobSettings.of(cfg)
     train = [{"weight": e.weight, "dataset": instantiate(e.dataset)} for e in job.data.train]
     world = job.trainer.world
     draws = Draws(batch_size=batch_size // world, samples_per_epoch=samples, seed=job.seed, skip=skip,
@@ -76,13 +77,13 @@ def train_stage(cfg: DictConfig, chain: DeMoN, stage: StageDir, logger: L.pytorc
     batch = spec.batch_size or job.data.batch_size
     resume = stage.last_checkpoint if stage.last_checkpoint.is_file() else None
     if resume is None and isinstance(spec, FlowStageSpec) and spec.restarts is not None:
-        resume = screen_restarts(cfg, chain, stage, module, logger)
+        resume = screen_restarts(cfg, job, chain, stage, module, logger)
     start_step = _checkpoint_step(resume) if resume is not None else 0
     # A resumed stage continues the sample sequence where the checkpoint left it: same batches,
     # same result as an uninterrupted run (on the CPU).
     # With DDP the global batch is the configured one, each process taking its slice of every batch
     # (demon_lab's sampler deals them, not Lightning's, which would reshuffle the sequence).
-    datamodule = build_datamodule(cfg, batch, spec.steps * batch, skip=start_step * batch,
+    datamodule = build_datamodule(cfg, job, batch, spec.steps * batch, skip=start_step * batch,
                                   **spec.curriculum(),
                                   pin_memory=resolve_accelerator(job.trainer.accelerator) == "cuda")
     checkpoint = L.pytorch.callbacks.ModelCheckpoint(
@@ -100,7 +101,7 @@ def train_stage(cfg: DictConfig, chain: DeMoN, stage: StageDir, logger: L.pytorc
         if spec.keep_best:
             keep = KeepBest(scorer, spec.best_metric, spec.keep_best, stage.path / "best.pt", spec.trained_nets())
             callbacks.append(keep)
-    trainer = _trainer(cfg, spec.steps, logger=logger if logger is not None else False, callbacks=callbacks,
+    trainer = _trainer(job, spec.steps, logger=logger if logger is not None else False, callbacks=callbacks,
                        enable_progress_bar=progress)
     if resume is not None:
         log.info("resuming stage %s from step %d (%s)", stage.name, start_step, resume)
@@ -130,9 +131,8 @@ def train_stage(cfg: DictConfig, chain: DeMoN, stage: StageDir, logger: L.pytorc
     return figures
 
 
-def _trainer(cfg: DictConfig, steps: int, **kwargs) -> L.Trainer:
+def _trainer(job: JobSettings, steps: int, **kwargs) -> L.Trainer:
     """A stage's Trainer: its devices, precision and gradient clipping, as DeMoN's optimiser does."""
-    job = JobSettings.of(cfg)
     return L.Trainer(
         max_steps=steps, accelerator=job.trainer.accelerator, devices=job.trainer.devices,
         num_nodes=job.trainer.num_nodes, strategy="ddp" if job.trainer.world > 1 else "auto",
@@ -143,7 +143,7 @@ def _trainer(cfg: DictConfig, steps: int, **kwargs) -> L.Trainer:
         use_distributed_sampler=False, plugins=[atomic_checkpoint_io()], **kwargs)
 
 
-def screen_restarts(cfg: DictConfig, chain: DeMoN, stage: StageDir, module: L.LightningModule,
+def screen_restarts(cfg: DictConfig, job: JobSettings, chain: DeMoN, stage: StageDir, module: L.LightningModule,
                     logger: L.pytorch.loggers.Logger | None) -> Path:
     """The stage option ``restarts: [k, steps]`` (PWC-Net's practice of restarting a flow net stuck at
     a poor start): train ``k`` starts of the stage's net for its first ``steps`` steps, each on the
@@ -158,7 +158,6 @@ def screen_restarts(cfg: DictConfig, chain: DeMoN, stage: StageDir, module: L.Li
     from demon_lab.pipeline.config import instantiate
     from demon_lab.pipeline.stages.validation import StageValidation
 
-    job = JobSettings.of(cfg)
     spec = job.stages[stage.name]
     starts, steps = spec.restarts
     batch = spec.batch_size or job.data.batch_size
@@ -171,11 +170,11 @@ def screen_restarts(cfg: DictConfig, chain: DeMoN, stage: StageDir, module: L.Li
             with torch.random.fork_rng(devices=[]):
                 torch.manual_seed(job.seed * 1_000_003 + i)
                 net.apply(initialise)
-        data = build_datamodule(cfg, batch, spec.steps * batch, **spec.curriculum())
+        data = build_datamodule(cfg, job, batch, spec.steps * batch, **spec.curriculum())
         # saved at its last step inside the epoch, as the stage's own checkpoints: the stage resumes from it
         saved = L.pytorch.callbacks.ModelCheckpoint(dirpath=stage.path, filename=f"restart{i}", save_top_k=-1,
                                                     every_n_train_steps=steps, enable_version_counter=False)
-        trainer = _trainer(cfg, steps, logger=False, callbacks=[saved], enable_progress_bar=False)
+        trainer = _trainer(job, steps, logger=False, callbacks=[saved], enable_progress_bar=False)
         trainer.fit(module, train_dataloaders=data.train_dataloader())
         chain.eval()
         with torch.no_grad():
