@@ -125,6 +125,10 @@ def test_stage_runs_record_their_loss_curves(smoke_run):
     for name in ("dm1", "dm2", "iterative"):
         assert {f"{val}/{k}" for k in ("epe", "rot_deg", "tran_deg", "l1_inv")} <= set(stages[name].data.metrics), name
     assert f"{val}/l1_inv" in stages["refine"].data.metrics
+    # each stage run carries its stage's figures too (a job stopped later still leaves them)
+    job_metrics = c.get_run(result["run_id"]).data.metrics
+    for name, stage in stages.items():
+        assert stage.data.metrics["stage/seconds"] == job_metrics[f"stage/{name}/seconds"], name
 
 
 def test_time_to_accuracy_figure_reads_the_flow1_stage_of_each_counted_run(smoke_run, tmp_path, monkeypatch):
@@ -182,6 +186,18 @@ def test_time_to_accuracy_figure_reads_the_flow1_stage_of_each_counted_run(smoke
     cached = {"run_id": "a-job-that-found-flow1-in-the-cache", "experiment_id": job.info.experiment_id,
               "artifact_uri": job.info.artifact_uri}
     assert figures.flow1_stage_run(c, cached).info.run_id == stage.info.run_id
+    # the report's table of the curves' end points: each seed's first, last and best point, the kept step
+    ends = paths["md"].read_text().split("the step whose nets the stage kept:")[1].split("\n\n")[1]
+    cells = {line.split("|")[1].strip(): [x.strip() for x in line.strip().strip("|").split("|")]
+             for line in ends.splitlines()[2:]}
+    steps = [m.step for m in sorted(c.get_metric_history(stage.info.run_id, "val/synthetic_sun3d/epe"),
+                                    key=lambda m: m.timestamp)]
+    best = min(range(len(ratios)), key=ratios.__getitem__)
+    assert cells["flow1"][2:5] == ["smoke; twin", "0", f"{ratios[0]:.3f}"]
+    assert cells["flow1"][5] == f"{ratios[-1]:.3f} (step {steps[-1]:,}, {minutes[-1]:.1f} min)"
+    assert cells["flow1"][6] == f"{ratios[best]:.3f} (step {steps[best]:,}, {minutes[best]:.1f} min)"
+    assert cells["flow1"][7] == "last"  # the smoke scale keeps each stage's last nets
+    assert cells["dm1"][5].startswith(f"{translations[-1]:.3f} (step ")
 
 
 def test_per_sample_metrics_table_matches_the_logged_means(smoke_run):

@@ -661,3 +661,65 @@ def test_a_report_names_the_run_archives_that_hold_its_experiments(tmp_path):
     md = report.report("study", uri, tmp_path / "reports", tmp_path)["md"].read_text()
     assert "the run archive(s) [runs/mine.zip](runs/mine.zip), [runs/old.zip](runs/old.zip) beside" in md
     assert "theirs.zip" not in md
+
+
+class _Metric:
+    def __init__(self, timestamp, step, value):
+        self.timestamp, self.step, self.value = timestamp, step, value
+
+
+class _Run:
+    def __init__(self, run_id, start_minute, metrics=None, tags=None, status="FINISHED"):
+        from types import SimpleNamespace
+
+        self.info = SimpleNamespace(run_id=run_id, start_time=start_minute * 60000, status=status)
+        self.data = SimpleNamespace(metrics=metrics or {}, tags=tags or {})
+
+
+class _Client:
+    """The two calls of MlflowClient the held-apart curves make, over in-memory runs."""
+
+    def __init__(self, histories, runs=()):
+        self.histories, self.runs = histories, {r.info.run_id: r for r in runs}
+
+    def get_metric_history(self, run_id, key):
+        return [_Metric(t * 60000, s, v) for t, s, v in self.histories.get((run_id, key), [])]
+
+    def get_run(self, run_id):
+        return self.runs[run_id]
+
+
+def test_a_resumed_stages_curve_joins_its_runs_and_a_retrained_one_starts_again():
+    """A stage stopped at step 300 and resumed from its step-200 checkpoint: the resumed run's points
+    follow the first run's last point before step 250 (its first), the steps trained again and the
+    pause between the runs not counted; a run that starts at the first step again replaces them."""
+    from demon_lab.reporting.figures import _joined_curve
+
+    first, resumed = _Run("a", 0), _Run("b", 100)  # the second run starts 100 minutes later
+    key, zero = "val/s/epe", "val/s/zero_flow_epe"
+    client = _Client({("a", key): [(1, 100, 0.9), (2, 200, 0.8), (3, 300, 0.7)], ("a", zero): [(1, 100, 2.0)],
+                      ("b", key): [(101, 250, 0.6), (102, 350, 0.5)], ("b", zero): [(101, 250, 2.0)]})
+    curve = _joined_curve(client, [first, resumed], key, zero)
+    assert curve["steps"] == [100, 200, 250, 350]
+    assert curve["values"] == pytest.approx([0.45, 0.4, 0.3, 0.25])
+    assert curve["minutes"] == pytest.approx([1, 2, 3, 4])
+    again = _Run("c", 200)
+    client.histories[("c", key)] = [(201, 100, 0.95)]
+    client.histories[("c", zero)] = [(201, 100, 1.0)]
+    assert _joined_curve(client, [first, resumed, again], key, zero) == {
+        "minutes": [pytest.approx(1.0)], "steps": [100], "values": [pytest.approx(0.95)]}
+    assert _joined_curve(client, [first], "val/s/tran_deg", None) is None
+
+
+def test_the_kept_nets_are_read_from_the_stage_run_else_from_the_job_that_trained_it():
+    from demon_lab.reporting.figures import _kept
+
+    tags = {"demon_lab.stage": "dm1", "mlflow.parentRunId": "job"}
+    client = _Client({}, [_Run("job", 0, {"stage/dm1/keep_best_step": 2250.0})])
+    assert _kept(client, _Run("s", 0, {"stage/seconds": 9.0, "stage/keep_best_step": 3500.0}, tags)) == "step 3,500"
+    assert _kept(client, _Run("s", 0, {"stage/seconds": 9.0}, tags)) == "last"
+    assert _kept(client, _Run("s", 0, {}, tags)) == "step 2,250"  # a stage run logged before it carried its figures
+    client.runs["job"] = _Run("job", 0, {}, status="FINISHED")
+    assert _kept(client, _Run("s", 0, {}, tags)) == "last"
+    client.runs["job"] = _Run("job", 0, {}, status="FAILED")
+    assert _kept(client, _Run("s", 0, {}, tags)) == "not logged"

@@ -215,23 +215,28 @@ def figure_qualitative(spec, result, path: Path, per_row_limit: int = 1) -> list
     return outputs
 
 
-def stage_run(client, run: Mapping[str, Any], stage: str = "flow1"):
-    """The MLflow run of the stage that trained a job run's ``stage`` net: its own child run, or, where
-    the job found the stage in the cache, the stage run of the same key (the job that trained it);
-    None if the store has neither."""
+def stage_runs(client, run: Mapping[str, Any], stage: str = "flow1") -> list:
+    """The MLflow runs that trained a job run's ``stage`` net, oldest first: every stage run of its
+    stage key (the job's own child run, or, where the job found the stage in the cache, those of the
+    jobs that trained it; more than one where a stage was stopped and resumed); [] if the store has none."""
     from demon_lab.pipeline.tracking import TAG
 
     children = client.search_runs([run["experiment_id"]], filter_string=(
         f"tags.`mlflow.parentRunId` = '{run['run_id']}' and tags.`{TAG}stage` = '{stage}'"))
-    if children:
-        return children[0]
-    keys = local_artifact(run, "stage_keys.json")
-    if keys is None:
-        return None
-    key = json.loads(keys.read_text()).get(stage, {}).get("key")
+    key = children[0].data.tags.get(f"{TAG}stage_key") if children else None
+    if key is None:
+        keys = local_artifact(run, "stage_keys.json")
+        key = json.loads(keys.read_text()).get(stage, {}).get("key") if keys is not None else None
+    if key is None:
+        return list(children[:1])
     experiments = [e.experiment_id for e in client.search_experiments()]
-    found = client.search_runs(experiments, filter_string=f"tags.`{TAG}stage_key` = '{key}'",
-                               order_by=["attributes.start_time ASC"]) if key else []
+    return list(client.search_runs(experiments, filter_string=f"tags.`{TAG}stage_key` = '{key}'",
+                                   order_by=["attributes.start_time ASC"]))
+
+
+def stage_run(client, run: Mapping[str, Any], stage: str = "flow1"):
+    """The first of :func:`stage_runs` (where the stage was trained in one go, the only one), or None."""
+    found = stage_runs(client, run, stage)
     return found[0] if found else None
 
 
@@ -244,41 +249,109 @@ TIME_PANELS = (("flow1", "epe", "held-apart EPE / zero-flow EPE"), ("dm1", "tran
 """The time-to-accuracy figure's panels: a stage, its held-apart metric, the axis label."""
 
 
-def figure_time_to_accuracy(spec, result, uri: str, path: Path, dataset: str = "synthetic_sun3d") -> list[Path]:
-    """The held-apart curves of each row's bootstrap stages against the minutes since the stage's run
-    started, one line per seed (rows whose jobs read the same stages share them): ``flow1``'s EPE
-    (``val/<dataset>/epe`` as a multiple of that set's zero-flow EPE: how soon a design leaves the
-    zero-flow plateau) and, where the rows trained it, ``dm1``'s translation error
-    (``val/<dataset>/tran_deg``: how soon its motion reads the flow). Logged by the stages every
-    ``tracking.val_every_n_steps``."""
-    import matplotlib.pyplot as plt
+def _joined_curve(client, runs: list, key: str, zero_key: str | None) -> dict[str, list] | None:
+    """One stage's held-apart curve over its runs (oldest first): minutes since the stage's training
+    started, steps, values (divided by the first ``zero_key`` value where given). A run that starts
+    past the points so far resumed the stage: the points it trained again are dropped and its minutes
+    follow the earlier run's last point kept (the time between the two runs, and the steps trained
+    again, are not counted); a run that starts at or before them trained the stage again: it replaces them."""
+    points: list[tuple[float, int, float]] = []
+    for run in runs:
+        history = sorted((m.timestamp, m.step, m.value) for m in client.get_metric_history(run.info.run_id, key))
+        zero = client.get_metric_history(run.info.run_id, zero_key) if zero_key is not None else None
+        if not history or zero == []:
+            continue
+        scale = zero[0].value if zero else 1.0
+        first_step = history[0][1]
+        resumed = bool(points) and first_step > points[0][1]
+        points = [p for p in points if p[1] < first_step] if resumed else []
+        offset = points[-1][0] if points else 0.0
+        start = run.info.start_time
+        points += [(offset + (t - start) / 60000, step, v / scale) for t, step, v in history]
+    if not points:
+        return None
+    return {"minutes": [m for m, _, _ in points], "steps": [s for _, s, _ in points],
+            "values": [v for _, _, v in points]}
+
+
+def _kept(client, run) -> str:
+    """Which nets a stage kept: ``step N`` (``keep_best``: the stage run's ``stage/keep_best_step``, or,
+    for runs logged before stage runs carried it, the ``stage/<stage>/keep_best_step`` of the job that
+    trained it, the stage run's parent), ``last`` where the stage logged its figures without one, ``not
+    logged`` where its job stopped before logging them (a later job found the stage cached)."""
+    from demon_lab.pipeline.tracking import TAG
+
+    if "stage/seconds" in run.data.metrics:
+        value = run.data.metrics.get("stage/keep_best_step")
+        return "last" if value is None else f"step {int(value):,}"
+    parent = run.data.tags.get("mlflow.parentRunId")
+    job = client.get_run(parent) if parent is not None else None
+    value = job.data.metrics.get(f"stage/{run.data.tags.get(f'{TAG}stage')}/keep_best_step") if job else None
+    if value is not None:
+        return f"step {int(value):,}"
+    return "last" if job is not None and job.info.status == "FINISHED" else "not logged"
+
+
+def held_apart_curves(spec, result, uri: str, dataset: str = "synthetic_sun3d") -> list[list[dict[str, Any]]]:
+    """The held-apart curves of each row's bootstrap stages, per panel of :data:`TIME_PANELS`: one
+    entry per set of rows whose jobs read the same stages (``labels``), holding each seed's curve
+    (``seed``; ``minutes`` of the stage's training, ``steps`` and ``values``: ``flow1``'s
+    ``val/<dataset>/epe`` as a multiple of that set's zero-flow EPE, ``dm1``'s
+    ``val/<dataset>/tran_deg``) and which nets the stage kept (``kept``, :func:`_kept`).
+    Logged by the stages every ``tracking.val_every_n_steps``."""
     from mlflow.tracking import MlflowClient
+
+    from demon_lab.pipeline.tracking import TAG
 
     client = MlflowClient(tracking_uri=uri)
     table = spec["tables"][0]
-    curves = []  # per panel: [(labels, [(minutes, values)])]
+    panels = []
     for stage, metric, _ in TIME_PANELS:
-        groups: dict[tuple[str, ...], tuple[list[str], list]] = {}
+        by_stage: dict[str, dict[str, Any]] = {}  # stage key -> the rows reading it, a seed, its runs
         for label, runs in _counted(result, table):
-            stages = [s for s in (stage_run(client, run, stage) for _, run in runs.sort_values("seed").iterrows())
-                      if s is not None]
-            if stages:
-                groups.setdefault(tuple(s.info.run_id for s in stages), ([], stages))[0].append(label)
-        lines = []
-        for labels, stages in groups.values():
-            points = []
-            for run in stages:
-                history = client.get_metric_history(run.info.run_id, f"val/{dataset}/{metric}")
-                zero = (client.get_metric_history(run.info.run_id, f"val/{dataset}/zero_flow_epe")
-                        if metric == "epe" else [None])
-                if history and zero:
-                    scale = zero[0].value if metric == "epe" else 1.0
-                    timed = sorted((m.timestamp, m.value) for m in history)
-                    start = run.info.start_time
-                    points.append(([(t - start) / 60000 for t, _ in timed], [v / scale for _, v in timed]))
-            if points:
-                lines.append((labels, points))
-        curves.append(lines)
+            for _, run in runs.sort_values("seed").iterrows():
+                found = stage_runs(client, run, stage)
+                if found:
+                    entry = by_stage.setdefault(found[0].data.tags.get(f"{TAG}stage_key", found[0].info.run_id),
+                                                {"labels": [], "seed": int(run["seed"]), "runs": found})
+                    if label not in entry["labels"]:
+                        entry["labels"].append(label)
+        lines: dict[tuple[str, ...], list[dict[str, Any]]] = {}
+        for entry in by_stage.values():
+            curve = _joined_curve(client, entry["runs"], f"val/{dataset}/{metric}",
+                                  f"val/{dataset}/zero_flow_epe" if metric == "epe" else None)
+            if curve is not None:
+                lines.setdefault(tuple(entry["labels"]), []).append(
+                    {"seed": entry["seed"], **curve, "kept": _kept(client, entry["runs"][-1])})
+        panels.append([{"labels": list(labels), "seeds": sorted(seeds, key=lambda c: c["seed"])}
+                       for labels, seeds in lines.items()])
+    return panels
+
+
+def curve_end_points(curves: list[list[dict[str, Any]]]) -> pd.DataFrame:
+    """One row per stage, set of rows and seed of :func:`held_apart_curves`: the curve's first point,
+    its last and its best (lowest) point with their step and minute, and which nets the stage kept."""
+    def point(c: dict[str, list], i: int) -> str:
+        return f"{c['values'][i]:.3f} (step {c['steps'][i]:,}, {c['minutes'][i]:.1f} min)"
+
+    rows = []
+    for (stage, metric, _), lines in zip(TIME_PANELS, curves, strict=True):
+        what = "EPE / zero flow" if metric == "epe" else "translation (°)"
+        for line in lines:
+            for c in line["seeds"]:
+                rows.append({"stage": stage, "held-apart": what, "rows": "; ".join(line["labels"]), "seed": c["seed"],
+                             "first": f"{c['values'][0]:.3f}", "last": point(c, -1),
+                             "best": point(c, int(np.argmin(c["values"]))), "kept": c["kept"]})
+    return pd.DataFrame(rows, columns=["stage", "held-apart", "rows", "seed", "first", "last", "best", "kept"])
+
+
+def figure_time_to_accuracy(curves: list[list[dict[str, Any]]], spec, path: Path,
+                            dataset: str = "synthetic_sun3d") -> list[Path]:
+    """:func:`held_apart_curves` against the minutes since each stage's run started, one line per seed
+    (rows whose jobs read the same stages share them): how soon a design leaves the zero-flow plateau
+    (``flow1``), and how soon its motion reads the flow (``dm1``, where the rows trained it)."""
+    import matplotlib.pyplot as plt
+
     panels = [i for i, lines in enumerate(curves) if lines]
     if not panels:
         return []
@@ -286,14 +359,15 @@ def figure_time_to_accuracy(spec, result, uri: str, path: Path, dataset: str = "
     colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
     for ax, i in zip(axes[0], panels, strict=True):
         stage, metric, ylabel = TIME_PANELS[i]
-        for k, (labels, points) in enumerate(curves[i]):
-            for n, (minutes, values) in enumerate(points):
-                ax.plot(minutes, values, color=colours[k % len(colours)], lw=1.2, marker="o", ms=2,
-                        label="; ".join(labels) if n == 0 else None)
+        for k, line in enumerate(curves[i]):
+            for n, c in enumerate(line["seeds"]):
+                ax.plot(c["minutes"], c["values"], color=colours[k % len(colours)], lw=1.2, marker="o", ms=2,
+                        label="; ".join(line["labels"]) if n == 0 else None)
         if metric == "epe":
             ax.axhline(1.0, color="k", lw=0.8, ls=":")
             ax.axhline(0.5, color="k", lw=0.8, ls="--")
-        ax.set_xlabel(f"wall-clock minutes of the {stage} stage (held-apart scoring included)")
+        ax.set_xlabel(f"wall-clock minutes of the {stage} stage "
+                      "(held-apart scoring included; a resumed stage's runs joined)")
         ax.set_ylabel(ylabel)
         ax.grid(alpha=0.3)
         ax.legend(fontsize=6)

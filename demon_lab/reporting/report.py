@@ -138,11 +138,13 @@ def report(name: str, uri: str, out_dir: Path, directory: Path = STUDIES,
     import matplotlib
 
     from demon_lab.reporting.figures import (
+        curve_end_points,
         figure_iterations,
         figure_motion_distributions,
         figure_pixel_histograms,
         figure_qualitative,
         figure_time_to_accuracy,
+        held_apart_curves,
         local_artifact,
     )
 
@@ -157,7 +159,9 @@ def report(name: str, uri: str, out_dir: Path, directory: Path = STUDIES,
         elif figure == "qualitative":
             figures += figure_qualitative(spec, result, figures_dir)
         elif figure == "time_to_accuracy":
-            figures += figure_time_to_accuracy(spec, result, uri, figures_dir)
+            curves = held_apart_curves(spec, result, uri)
+            result["curve_ends"] = curve_end_points(curves)
+            figures += figure_time_to_accuracy(curves, spec, figures_dir)
     footer = provenance.footer(result["provenance"], result["used"], result["versions"])
     for figure_path in figures:
         provenance.stamp_figure(figure_path, footer)

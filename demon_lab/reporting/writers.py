@@ -78,6 +78,11 @@ def write_markdown(spec, result, info, failed: pd.DataFrame, paper_rows) -> str:
         w("## Figures\n\n")
         for path in sorted(result.get("figures", [])):
             w(f"![{Path(path).stem}](figures/{Path(path).name})\n\n")
+        ends = result.get("curve_ends")
+        if ends is not None and not ends.empty:
+            w("The held-apart curves of the time-to-accuracy figure (synthetic_sun3d's validation scenes), "
+              "each seed's first, last and best point, and the step whose nets the stage kept:\n\n")
+            w(markdown_table(list(ends.columns), ends.astype(str).values.tolist()) + "\n\n")
         lacking = result.get("without_artifacts", [])
         if lacking and set(spec["figures"]) - {"iterations"}:
             w(f"Figures drawn from run artifacts (per-pixel errors, per-sample motion errors, depth maps) leave "

@@ -124,6 +124,8 @@ def train_stage(cfg: DictConfig, chain: DeMoN, stage: StageDir, logger: L.pytorc
                **{f"final/{k}": v for k, v in module.last_terms.items()}, **kept}
     if module.memo is not None and module.memo.hits + module.memo.misses:
         figures["reuse_frozen_hits"] = module.memo.hits / (module.memo.hits + module.memo.misses)
+    if logger is not None and global_rank(cfg) == 0:  # on the stage's own run too, whatever becomes of the job
+        logger.log_metrics({f"stage/{k}": v for k, v in figures.items()}, step=spec.steps)
     # The trainer and the module refer to each other: collect them (and the datasets' in-memory
     # samples) now rather than let every stage of a job keep its own copy until the next GC pass.
     del trainer, module, datamodule
