@@ -347,8 +347,13 @@ def test_a_run_archive_carries_a_study_to_another_store_and_imports_once(tmp_pat
         tracker.log_metrics(stage, {"val/setA/epe": 1.0 / (step + 1)}, step=step)
     tracker.finish(stage, "FINISHED")
     other = Tracker(uri, "elsewhere", str(tmp_path / "artifacts"))
-    cached = other.start("dm1", {f"{TAG}kind": "stage", f"{TAG}stage": "dm1", f"{TAG}stage_key": "k2"})
+    trainer = other.start("b-0", {f"{TAG}seed": "0"})  # the job of another experiment that trained dm1
+    cached = other.start("dm1", {f"{TAG}kind": "stage", f"{TAG}stage": "dm1", f"{TAG}stage_key": "k2"},
+                         parent_id=trainer)
     tracker.log_metrics(cached, {"loss": 0.5})
+    tracker.log_metrics(trainer, {"stage/dm1/keep_best_step": 250.0, "stage/dm1/seconds": 9.0,
+                                  "stage/flow1/seconds": 3.0})
+    tracker.finish(trainer, "FINISHED")
     tracker.finish(cached, "FINISHED")
     other.start("dm1", {f"{TAG}kind": "stage", f"{TAG}stage": "dm1", f"{TAG}stage_key": "k3"})  # not read by a job
     tracker.log_text(job, json.dumps({"flow1": {"key": "k1"}, "dm1": {"key": "k2"}}), "stage_keys.json")
@@ -393,6 +398,10 @@ def test_a_run_archive_carries_a_study_to_another_store_and_imports_once(tmp_pat
     assert after == before and "- FAILED run" in before
     assert any(r[:3] == ["row a", "3", "2.000 ± 2.484"] for r in table_rows(before))
     assert runs[stage].data.tags[PARENT] == runs[job].info.run_id and PARENT not in runs[cached].data.tags
+    # the cached stage's job stays out, and the stage run takes along what that job logged of it
+    assert trainer not in runs and runs[cached].data.metrics == {"loss": 0.5, "stage/keep_best_step": 250.0,
+                                                                 "stage/seconds": 9.0}
+    assert "stage/seconds" not in runs[stage].data.metrics  # its job is in the archive
     assert client.get_experiment(runs[cached].info.experiment_id).name == "elsewhere"
     assert [(m.step, m.value) for m in client.get_metric_history(runs[stage].info.run_id, "val/setA/epe")] == [
         (0, 1.0), (1, 0.5), (2, 1.0 / 3)]

@@ -11,7 +11,8 @@ end times, tags, params and every metric's full history with steps and timestamp
 reads, and, with ``images=False``, but its depth panels: what the tables and histograms read stays). It holds
 the FINISHED, FAILED and KILLED runs of the named experiments, every stage run among them included, and
 the stage runs of other experiments whose trained stages a job of them read from the stage cache
-(a job's ``stage_keys.json``), so the figures that read a stage's curves find them. Unfinished runs are
+(a job's ``stage_keys.json``), so the figures that read a stage's curves find them; such a stage run
+carries the figures its own job logged of it (its time, the nets it kept). Unfinished runs are
 left out: they are resumable only beside the stage cache they checkpoint into.
 
 Importing keeps each run's times, tags and histories; the run gets a new id in the store and the tag
@@ -30,7 +31,7 @@ from __future__ import annotations
 import json
 import tempfile
 import zipfile
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -86,6 +87,28 @@ def _record(client, run, experiment: str) -> dict[str, Any]:
             "tags": dict(run.data.tags), "params": dict(run.data.params), "metrics": metrics}
 
 
+def _carry_job_figures(client, record: dict[str, Any], exported: Mapping[str, Any]) -> None:
+    """A stage run whose job stays out of the archive (a job of another experiment, whose stage a job
+    of the study read from the cache) takes along the figures that job logged of its stage
+    (``stage/<stage>/...`` there, ``stage/...`` here, as stage runs log them themselves since they carry
+    them): its time and which nets it kept, which the time-to-accuracy report reads."""
+    from mlflow.exceptions import MlflowException
+
+    tags, metrics = record["tags"], record["metrics"]
+    parent = tags.get(PARENT)
+    if tags.get(f"{TAG}kind") != "stage" or parent is None or parent in exported or "stage/seconds" in metrics:
+        return
+    try:
+        job = client.get_run(parent)
+    except MlflowException:
+        return  # (deleted from the store)
+    prefix = f"stage/{tags.get(f'{TAG}stage')}/"
+    for key in job.data.metrics:
+        if key.startswith(prefix):
+            metrics["stage/" + key.removeprefix(prefix)] = [[m.step, m.timestamp, m.value]
+                                                          for m in client.get_metric_history(parent, key)]
+
+
 def _stage_keys(client, run_id: str, into: Path) -> list[str]:
     """The stage keys a job read or trained (its ``stage_keys.json``), or none."""
     from mlflow.exceptions import MlflowException
@@ -117,6 +140,8 @@ def export_runs(uri: str, experiments: Sequence[str], path: Path, images: bool =
                     runs.setdefault(run.info.run_id, run)
         records = [_record(client, run, names[run.info.experiment_id])
                    for run in sorted(runs.values(), key=lambda r: (r.info.start_time, r.info.run_id))]
+        for record in records:
+            _carry_job_figures(client, record, runs)
         with zipfile.ZipFile(path, "w", compression=zipfile.ZIP_DEFLATED) as archive:
             archive.comment = " ".join(sorted(experiments)).encode()  # what archived_experiments reads
             archive.writestr("runs.json", json.dumps(records, indent=1, sort_keys=True) + "\n")
