@@ -136,7 +136,7 @@ def test_time_to_accuracy_figure_reads_the_flow1_stage_of_each_counted_run(smoke
     translation curve, against the minutes since each stage run started: the values and times of the
     stage runs' metric histories; a run
     whose flow1 came from the cache is found through its stage key; rows reading the same flow1 stages
-    share one line, labelled with both."""
+    share one line, labelled with both; the spec's ``curves`` names the tables whose rows it draws."""
     import shutil
 
     import yaml
@@ -150,7 +150,12 @@ def test_time_to_accuracy_figure_reads_the_flow1_stage_of_each_counted_run(smoke
             "figures": ["time_to_accuracy"],
             "tables": [{"name": "flow1", "caption": "c", "experiment": "default", "columns": ["epe"],
                         "rows": [{"label": "smoke", "match": {}, "metrics": "it0"},
-                                 {"label": "twin", "match": {}, "metrics": "it0"}]}]}
+                                 {"label": "twin", "match": {}, "metrics": "it0"}]},
+                       {"name": "other", "caption": "d", "experiment": "default", "columns": ["epe"],
+                        "rows": [{"label": "third", "match": {}, "metrics": "it1"}]},
+                       {"name": "left", "caption": "e", "experiment": "default", "columns": ["epe"],
+                        "rows": [{"label": "not drawn", "match": {}, "metrics": "it0"}]}],
+            "curves": ["flow1", "other"]}
     (tmp_path / "tta.yaml").write_text(yaml.safe_dump(spec))
     drawn = []
     import matplotlib.axes
@@ -166,7 +171,7 @@ def test_time_to_accuracy_figure_reads_the_flow1_stage_of_each_counted_run(smoke
     paths = report.report("tta", uri, tmp_path / "out", tmp_path)
     assert (tmp_path / "out" / "figures" / "tta_time_to_accuracy.png") in paths.values()
     (label, minutes, ratios), (dm1_label, dm1_minutes, translations) = drawn  # flow1's panel, then dm1's
-    assert label == dm1_label == "smoke; twin"
+    assert label == dm1_label == "smoke; twin; third"  # the curves tables' rows, not the third table's
     c = client(tmp)
     stage = figures.flow1_stage_run(c, {"run_id": result["run_id"],
                                                "experiment_id": c.get_run(result["run_id"]).info.experiment_id})
@@ -193,7 +198,7 @@ def test_time_to_accuracy_figure_reads_the_flow1_stage_of_each_counted_run(smoke
     steps = [m.step for m in sorted(c.get_metric_history(stage.info.run_id, "val/synthetic_sun3d/epe"),
                                     key=lambda m: m.timestamp)]
     best = min(range(len(ratios)), key=ratios.__getitem__)
-    assert cells["flow1"][2:5] == ["smoke; twin", "0", f"{ratios[0]:.3f}"]
+    assert cells["flow1"][2:5] == ["smoke; twin; third", "0", f"{ratios[0]:.3f}"]
     assert cells["flow1"][5] == f"{ratios[-1]:.3f} (step {steps[-1]:,}, {minutes[-1]:.1f} min)"
     assert cells["flow1"][6] == f"{ratios[best]:.3f} (step {steps[best]:,}, {minutes[best]:.1f} min)"
     assert cells["flow1"][7] == "last"  # the smoke scale keeps each stage's last nets

@@ -646,6 +646,9 @@ def test_a_spec_of_one_design_extends_another_and_counts_only_runs_of_its_design
     (tmp_path / "bad.yaml").write_text(yaml.safe_dump({"extends": "study", "drop_rows": ["row z"]}))
     with pytest.raises(report.ReportError, match="drop_rows: \\['row z'\\] are rows of no table of study"):
         report.load_spec("bad", tmp_path)
+    (tmp_path / "bad.yaml").write_text(yaml.safe_dump({"extends": "study", "curves": ["nope"]}))
+    with pytest.raises(report.ReportError, match=r"curves: expected a list of the spec's table names .*\['nope'\]"):
+        report.load_spec("bad", tmp_path)
 
 
 def test_a_report_names_the_run_archives_that_hold_its_experiments(tmp_path):

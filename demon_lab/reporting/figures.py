@@ -293,8 +293,9 @@ def _kept(client, run) -> str:
 
 
 def held_apart_curves(spec, result, uri: str, dataset: str = "synthetic_sun3d") -> list[list[dict[str, Any]]]:
-    """The held-apart curves of each row's bootstrap stages, per panel of :data:`TIME_PANELS`: one
-    entry per set of rows whose jobs read the same stages (``labels``), holding each seed's curve
+    """The held-apart curves of each row's bootstrap stages, per panel of :data:`TIME_PANELS`, for the
+    rows of the spec's ``curves`` tables (by default its first): one entry per set of rows whose jobs
+    read the same stages (``labels``), holding each seed's curve
     (``seed``; ``minutes`` of the stage's training, ``steps`` and ``values``: ``flow1``'s
     ``val/<dataset>/epe`` as a multiple of that set's zero-flow EPE, ``dm1``'s
     ``val/<dataset>/tran_deg``) and which nets the stage kept (``kept``, :func:`_kept`).
@@ -304,11 +305,12 @@ def held_apart_curves(spec, result, uri: str, dataset: str = "synthetic_sun3d") 
     from demon_lab.pipeline.tracking import TAG
 
     client = MlflowClient(tracking_uri=uri)
-    table = spec["tables"][0]
+    named = spec.get("curves", [spec["tables"][0]["name"]])
+    rows = [counted for table in spec["tables"] if table["name"] in named for counted in _counted(result, table)]
     panels = []
     for stage, metric, _ in TIME_PANELS:
         by_stage: dict[str, dict[str, Any]] = {}  # stage key -> the rows reading it, a seed, its runs
-        for label, runs in _counted(result, table):
+        for label, runs in rows:
             for _, run in runs.sort_values("seed").iterrows():
                 found = stage_runs(client, run, stage)
                 if found:

@@ -107,6 +107,11 @@ def load_spec(name: str, directory: Path = STUDIES) -> dict[str, Any]:
     for figure in spec.get("figures", []):
         if figure not in FIGURES:
             raise ReportError(f"{_shown(name, directory)}: figures: expected some of {FIGURES}, got {figure!r}")
+    names = [table["name"] for table in spec["tables"]]
+    curves = spec.get("curves", names[:1])
+    if not isinstance(curves, list) or not curves or not set(curves) <= set(names):
+        raise ReportError(f"{_shown(name, directory)}: curves: expected a list of the spec's table names "
+                          f"({', '.join(names)}), got {curves!r}")
     spec["name"] = name
     return spec
 
