@@ -359,11 +359,13 @@ def figure_time_to_accuracy(curves: list[list[dict[str, Any]]], spec, path: Path
         return []
     fig, axes = plt.subplots(1, len(panels), figsize=(7.5 * len(panels), 4.2), squeeze=False)
     colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    firsts = list(dict.fromkeys(line["labels"][0] for lines in curves for line in lines))  # a row: one colour
     for ax, i in zip(axes[0], panels, strict=True):
         stage, metric, ylabel = TIME_PANELS[i]
-        for k, line in enumerate(curves[i]):
+        for line in curves[i]:
+            colour = colours[firsts.index(line["labels"][0]) % len(colours)]
             for n, c in enumerate(line["seeds"]):
-                ax.plot(c["minutes"], c["values"], color=colours[k % len(colours)], lw=1.2, marker="o", ms=2,
+                ax.plot(c["minutes"], c["values"], color=colour, lw=1.2, marker="o", ms=2,
                         label="; ".join(line["labels"]) if n == 0 else None)
         if metric == "epe":
             ax.axhline(1.0, color="k", lw=0.8, ls=":")
