@@ -10,8 +10,10 @@ files it wrote; those drawn from run artifacts read them where the store keeps t
 from __future__ import annotations
 
 import csv
+import itertools
 import json
 import math
+import numbers
 import shutil
 from collections import defaultdict
 from collections.abc import Iterator, Mapping
@@ -215,10 +217,23 @@ def figure_qualitative(spec, result, path: Path, per_row_limit: int = 1) -> list
     return outputs
 
 
+ENDED = ("FINISHED", "FAILED", "KILLED")
+"""The stage runs the curves read: those a run archive carries too (a RUNNING one was stopped unawares)."""
+
+
+def _started(run: Mapping[str, Any]) -> int | None:
+    """A job run's start in epoch milliseconds (``mlflow.search_runs`` gives a timestamp), or None."""
+    value = run.get("start_time") if hasattr(run, "get") else None
+    if isinstance(value, numbers.Real):
+        return None if math.isnan(value) else int(value)
+    return None if value is None or pd.isna(value) else int(pd.Timestamp(value).value // 1_000_000)
+
+
 def stage_runs(client, run: Mapping[str, Any], stage: str = "flow1") -> list:
-    """The MLflow runs that trained a job run's ``stage`` net, oldest first: every stage run of its
-    stage key (the job's own child run, or, where the job found the stage in the cache, those of the
-    jobs that trained it; more than one where a stage was stopped and resumed); [] if the store has none."""
+    """The ended MLflow runs that trained the ``stage`` net a job run read, oldest first: the runs of its
+    stage key up to the job's own child run, or, where the job found the stage in the cache, those
+    started before the job (a stage stopped and resumed has several; a stage trained again later, for
+    another job, is not the one this job read); [] if the store has none."""
     from demon_lab.pipeline.tracking import TAG
 
     children = client.search_runs([run["experiment_id"]], filter_string=(
@@ -228,10 +243,15 @@ def stage_runs(client, run: Mapping[str, Any], stage: str = "flow1") -> list:
         keys = local_artifact(run, "stage_keys.json")
         key = json.loads(keys.read_text()).get(stage, {}).get("key") if keys is not None else None
     if key is None:
-        return list(children[:1])
+        return [c for c in children[:1] if c.info.status in ENDED]
     experiments = [e.experiment_id for e in client.search_experiments()]
-    return list(client.search_runs(experiments, filter_string=f"tags.`{TAG}stage_key` = '{key}'",
-                                   order_by=["attributes.start_time ASC"]))
+    found = [r for r in client.search_runs(experiments, filter_string=f"tags.`{TAG}stage_key` = '{key}'",
+                                           order_by=["attributes.start_time ASC"]) if r.info.status in ENDED]
+    if children:
+        until = children[0].info.start_time
+        return [r for r in found if r.info.start_time <= until]
+    started = _started(run)
+    return [r for r in found if started is None or r.info.start_time < started]
 
 
 def stage_run(client, run: Mapping[str, Any], stage: str = "flow1"):
@@ -245,47 +265,80 @@ def flow1_stage_run(client, run: Mapping[str, Any]):
     return stage_run(client, run, "flow1")
 
 
+CURVES_DATASET = "synthetic_sun3d"
+"""The held-apart set whose curves the time-to-accuracy figure draws."""
+
 TIME_PANELS = (("flow1", "epe", "held-apart EPE / zero-flow EPE"), ("dm1", "tran_deg", "held-apart translation (°)"))
 """The time-to-accuracy figure's panels: a stage, its held-apart metric, the axis label."""
 
 
-def _joined_curve(client, runs: list, key: str, zero_key: str | None) -> dict[str, list] | None:
-    """One stage's held-apart curve over its runs (oldest first): minutes since the stage's training
-    started, steps, values (divided by the first ``zero_key`` value where given). A run that starts
-    past the points so far resumed the stage: the points it trained again are dropped and its minutes
-    follow the earlier run's last point kept (the time between the two runs, and the steps trained
-    again, are not counted); a run that starts at or before them trained the stage again: it replaces them."""
+def _pieces(client, run, key: str) -> list[tuple[int, list[tuple[int, int, float]]]]:
+    """A stage run's history of ``key`` as (start in ms, [(timestamp, step, value)]) pieces: one per
+    process that trained it. A stage resumed in its own run (its job stopped unawares and run again)
+    logs the steps again from its checkpoint: the history is cut where the step falls, and a later
+    piece starts where the run's training loss starts again (else at its own first point)."""
+    history = sorted((m.timestamp, m.step, m.value) for m in client.get_metric_history(run.info.run_id, key))
+    cuts = [i for i in range(1, len(history)) if history[i][1] <= history[i - 1][1]]
+    if not cuts:
+        return [(run.info.start_time, history)] if history else []
+    loss = sorted((m.timestamp, m.step) for m in client.get_metric_history(run.info.run_id, "train/loss"))
+    restarts = [loss[i][0] for i in range(1, len(loss)) if loss[i][1] <= loss[i - 1][1]]
+    bounds = [0, *cuts, len(history)]
+    pieces = []
+    for a, b in itertools.pairwise(bounds):
+        part = history[a:b]
+        if a == 0:
+            pieces.append((run.info.start_time, part))
+            continue
+        between = [t for t in restarts if history[a - 1][0] < t <= part[0][0]]
+        pieces.append((between[0] if between else part[0][0], part))
+    return pieces
+
+
+def _joined_curve(client, runs: list, key: str, zero_key: str | None) -> dict[str, Any] | None:
+    """One stage's held-apart curve over its runs (oldest first) and their :func:`_pieces`: minutes of
+    the stage's training, steps, values (divided by the run's first ``zero_key`` value where given), and
+    the runs that gave its points (``runs``). A piece that starts past the first point so far resumed
+    the stage: the points it trained again are dropped and its minutes follow the last point kept (the
+    pause between the two, and the steps trained again, are not counted); a piece that starts at or
+    before it trained the stage again from its start: it replaces them."""
     points: list[tuple[float, int, float]] = []
+    used: list = []
     for run in runs:
-        history = sorted((m.timestamp, m.step, m.value) for m in client.get_metric_history(run.info.run_id, key))
         zero = client.get_metric_history(run.info.run_id, zero_key) if zero_key is not None else None
-        if not history or zero == []:
+        if zero is not None and not (zero and zero[0].value > 0):
             continue
         scale = zero[0].value if zero else 1.0
-        first_step = history[0][1]
-        resumed = bool(points) and first_step > points[0][1]
-        points = [p for p in points if p[1] < first_step] if resumed else []
-        offset = points[-1][0] if points else 0.0
-        start = run.info.start_time
-        points += [(offset + (t - start) / 60000, step, v / scale) for t, step, v in history]
+        for start, part in _pieces(client, run, key):
+            first_step = part[0][1]
+            resumed = bool(points) and first_step > points[0][1]
+            points = [p for p in points if p[1] < first_step] if resumed else []
+            used = [*used, run] if resumed else [run]
+            offset = points[-1][0] if points else 0.0
+            points += [(offset + (t - start) / 60000, step, v / scale) for t, step, v in part]
     if not points:
         return None
     return {"minutes": [m for m, _, _ in points], "steps": [s for _, s, _ in points],
-            "values": [v for _, _, v in points]}
+            "values": [v for _, _, v in points], "runs": list(dict.fromkeys(used))}
 
 
 def _kept(client, run) -> str:
     """Which nets a stage kept: ``step N`` (``keep_best``: the stage run's ``stage/keep_best_step``, or,
     for runs logged before stage runs carried it, the ``stage/<stage>/keep_best_step`` of the job that
     trained it, the stage run's parent), ``last`` where the stage logged its figures without one, ``not
-    logged`` where its job stopped before logging them (a later job found the stage cached)."""
+    logged`` where its job stopped before logging them, or is not in the store."""
+    from mlflow.exceptions import MlflowException
+
     from demon_lab.pipeline.tracking import TAG
 
     if "stage/seconds" in run.data.metrics:
         value = run.data.metrics.get("stage/keep_best_step")
         return "last" if value is None else f"step {int(value):,}"
     parent = run.data.tags.get("mlflow.parentRunId")
-    job = client.get_run(parent) if parent is not None else None
+    try:
+        job = client.get_run(parent) if parent is not None else None
+    except MlflowException:
+        job = None
     value = job.data.metrics.get(f"stage/{run.data.tags.get(f'{TAG}stage')}/keep_best_step") if job else None
     if value is not None:
         return f"step {int(value):,}"
@@ -323,8 +376,9 @@ def held_apart_curves(spec, result, uri: str, dataset: str = "synthetic_sun3d") 
             curve = _joined_curve(client, entry["runs"], f"val/{dataset}/{metric}",
                                   f"val/{dataset}/zero_flow_epe" if metric == "epe" else None)
             if curve is not None:
+                used = curve.pop("runs")
                 lines.setdefault(tuple(entry["labels"]), []).append(
-                    {"seed": entry["seed"], **curve, "kept": _kept(client, entry["runs"][-1])})
+                    {"seed": entry["seed"], **curve, "kept": _kept(client, used[-1])})
         panels.append([{"labels": list(labels), "seeds": sorted(seeds, key=lambda c: c["seed"])}
                        for labels, seeds in lines.items()])
     return panels
@@ -342,8 +396,8 @@ def curve_end_points(curves: list[list[dict[str, Any]]]) -> pd.DataFrame:
         for line in lines:
             for c in line["seeds"]:
                 rows.append({"stage": stage, "held-apart": what, "rows": "; ".join(line["labels"]), "seed": c["seed"],
-                             "first": f"{c['values'][0]:.3f}", "last": point(c, -1),
-                             "best": point(c, int(np.argmin(c["values"]))), "kept": c["kept"]})
+                             "first": point(c, 0), "last": point(c, -1),
+                             "best": point(c, int(np.nanargmin(c["values"]))), "kept": c["kept"]})
     return pd.DataFrame(rows, columns=["stage", "held-apart", "rows", "seed", "first", "last", "best", "kept"])
 
 

@@ -138,6 +138,7 @@ def report(name: str, uri: str, out_dir: Path, directory: Path = STUDIES,
     import matplotlib
 
     from demon_lab.reporting.figures import (
+        CURVES_DATASET,
         curve_end_points,
         figure_iterations,
         figure_motion_distributions,
@@ -159,9 +160,9 @@ def report(name: str, uri: str, out_dir: Path, directory: Path = STUDIES,
         elif figure == "qualitative":
             figures += figure_qualitative(spec, result, figures_dir)
         elif figure == "time_to_accuracy":
-            curves = held_apart_curves(spec, result, uri)
-            result["curve_ends"] = curve_end_points(curves)
-            figures += figure_time_to_accuracy(curves, spec, figures_dir)
+            curves = held_apart_curves(spec, result, uri, CURVES_DATASET)
+            result["curve_ends"], result["curves_dataset"] = curve_end_points(curves), CURVES_DATASET
+            figures += figure_time_to_accuracy(curves, spec, figures_dir, CURVES_DATASET)
     footer = provenance.footer(result["provenance"], result["used"], result["versions"])
     for figure_path in figures:
         provenance.stamp_figure(figure_path, footer)

@@ -80,8 +80,13 @@ def write_markdown(spec, result, info, failed: pd.DataFrame, paper_rows) -> str:
             w(f"![{Path(path).stem}](figures/{Path(path).name})\n\n")
         ends = result.get("curve_ends")
         if ends is not None and not ends.empty:
-            w("The held-apart curves of the time-to-accuracy figure (synthetic_sun3d's validation scenes), "
-              "each seed's first, last and best point, and the step whose nets the stage kept:\n\n")
+            w(f"The held-apart curves of the time-to-accuracy figure ({result['curves_dataset']}'s validation "
+              "scenes), per seed: the first, last and best (lowest) point of the curve, and the step whose nets "
+              "the stage kept. The stage's `keep_best` scores every `keep_best` steps and averages its score "
+              "over every held-apart set, so its kept step can differ from this set's best point; `last`: the "
+              "stage kept its last nets; `not logged`: the job that trained it stopped before logging it. "
+              "A stage stopped and resumed is one curve, the pause left out; the minutes are as the jobs ran, "
+              "beside whatever else shared the machine:\n\n")
             w(markdown_table(list(ends.columns), ends.astype(str).values.tolist()) + "\n\n")
         lacking = result.get("without_artifacts", [])
         if lacking and set(spec["figures"]) - {"iterations"}:

@@ -69,7 +69,10 @@ def train_stage(cfg: DictConfig, chain: DeMoN, stage: StageDir, logger: L.pytorc
             stage.save({net: plain_state(getattr(chain, net)) for net in spec.trained_nets()})
         log.info("stage %s: 0 steps: keeps %s as they are (from model.weights or an earlier stage)", stage.name,
                  ", ".join(spec.trained_nets()))
-        return {"seconds": 0.0, "steps_per_second": 0.0, "resumed_from_step": 0}
+        figures = {"seconds": 0.0, "steps_per_second": 0.0, "resumed_from_step": 0}
+        if logger is not None and global_rank(cfg) == 0:
+            logger.log_metrics({f"stage/{k}": v for k, v in figures.items()}, step=0)
+        return figures
     module = getattr(modules, spec.module)(chain, weights=dict(job.loss), lr_schedule=job.schedule.lr_schedule,
                                            weight_decay=job.schedule.weight_decay,
                                            channels_last=job.model.channels_last,
