@@ -217,10 +217,6 @@ def figure_qualitative(spec, result, path: Path, per_row_limit: int = 1) -> list
     return outputs
 
 
-ENDED = ("FINISHED", "FAILED", "KILLED")
-"""The stage runs the curves read: those a run archive carries too (a RUNNING one was stopped unawares)."""
-
-
 def _started(run: Mapping[str, Any]) -> int | None:
     """A job run's start in epoch milliseconds (``mlflow.search_runs`` gives a timestamp), or None."""
     value = run.get("start_time") if hasattr(run, "get") else None
@@ -235,6 +231,7 @@ def stage_runs(client, run: Mapping[str, Any], stage: str = "flow1") -> list:
     started before the job (a stage stopped and resumed has several; a stage trained again later, for
     another job, is not the one this job read); [] if the store has none."""
     from demon_lab.pipeline.tracking import TAG
+    from demon_lab.reporting.archive import ENDED  # (the runs an archive carries: a RUNNING one was stopped unawares)
 
     children = client.search_runs([run["experiment_id"]], filter_string=(
         f"tags.`mlflow.parentRunId` = '{run['run_id']}' and tags.`{TAG}stage` = '{stage}'"))
@@ -252,17 +249,6 @@ def stage_runs(client, run: Mapping[str, Any], stage: str = "flow1") -> list:
         return [r for r in found if r.info.start_time <= until]
     started = _started(run)
     return [r for r in found if started is None or r.info.start_time < started]
-
-
-def stage_run(client, run: Mapping[str, Any], stage: str = "flow1"):
-    """The first of :func:`stage_runs` (where the stage was trained in one go, the only one), or None."""
-    found = stage_runs(client, run, stage)
-    return found[0] if found else None
-
-
-def flow1_stage_run(client, run: Mapping[str, Any]):
-    """:func:`stage_run` of ``flow1``."""
-    return stage_run(client, run, "flow1")
 
 
 CURVES_DATASET = "synthetic_sun3d"
@@ -345,7 +331,7 @@ def _kept(client, run) -> str:
     return "last" if job is not None and job.info.status == "FINISHED" else "not logged"
 
 
-def held_apart_curves(spec, result, uri: str, dataset: str = "synthetic_sun3d") -> list[list[dict[str, Any]]]:
+def held_apart_curves(spec, result, uri: str, dataset: str = CURVES_DATASET) -> list[list[dict[str, Any]]]:
     """The held-apart curves of each row's bootstrap stages, per panel of :data:`TIME_PANELS`, for the
     rows of the spec's ``curves`` tables (by default its first): one entry per set of rows whose jobs
     read the same stages (``labels``), holding each seed's curve
@@ -402,7 +388,7 @@ def curve_end_points(curves: list[list[dict[str, Any]]]) -> pd.DataFrame:
 
 
 def figure_time_to_accuracy(curves: list[list[dict[str, Any]]], spec, path: Path,
-                            dataset: str = "synthetic_sun3d") -> list[Path]:
+                            dataset: str = CURVES_DATASET) -> list[Path]:
     """:func:`held_apart_curves` against the minutes since each stage's run started, one line per seed
     (rows whose jobs read the same stages share them): how soon a design leaves the zero-flow plateau
     (``flow1``), and how soon its motion reads the flow (``dm1``, where the rows trained it)."""

@@ -69,10 +69,7 @@ def train_stage(cfg: DictConfig, chain: DeMoN, stage: StageDir, logger: L.pytorc
             stage.save({net: plain_state(getattr(chain, net)) for net in spec.trained_nets()})
         log.info("stage %s: 0 steps: keeps %s as they are (from model.weights or an earlier stage)", stage.name,
                  ", ".join(spec.trained_nets()))
-        figures = {"seconds": 0.0, "steps_per_second": 0.0, "resumed_from_step": 0}
-        if logger is not None and global_rank(cfg) == 0:
-            logger.log_metrics({f"stage/{k}": v for k, v in figures.items()}, step=0)
-        return figures
+        return _logged(cfg, logger, {"seconds": 0.0, "steps_per_second": 0.0, "resumed_from_step": 0}, 0)
     module = getattr(modules, spec.module)(chain, weights=dict(job.loss), lr_schedule=job.schedule.lr_schedule,
                                            weight_decay=job.schedule.weight_decay,
                                            channels_last=job.model.channels_last,
@@ -127,12 +124,17 @@ def train_stage(cfg: DictConfig, chain: DeMoN, stage: StageDir, logger: L.pytorc
                **{f"final/{k}": v for k, v in module.last_terms.items()}, **kept}
     if module.memo is not None and module.memo.hits + module.memo.misses:
         figures["reuse_frozen_hits"] = module.memo.hits / (module.memo.hits + module.memo.misses)
-    if logger is not None and global_rank(cfg) == 0:  # on the stage's own run too, whatever becomes of the job
-        logger.log_metrics({f"stage/{k}": v for k, v in figures.items()}, step=spec.steps)
     # The trainer and the module refer to each other: collect them (and the datasets' in-memory
     # samples) now rather than let every stage of a job keep its own copy until the next GC pass.
     del trainer, module, datamodule
     gc.collect()
+    return _logged(cfg, logger, figures, spec.steps)
+
+
+def _logged(cfg: DictConfig, logger, figures: dict[str, float], step: int) -> dict[str, float]:
+    """``figures``, logged on the stage's own run too (``stage/<name>``), whatever becomes of the job."""
+    if logger is not None and global_rank(cfg) == 0:
+        logger.log_metrics({f"stage/{k}": v for k, v in figures.items()}, step=step)
     return figures
 
 
