@@ -174,7 +174,7 @@ def test_time_to_accuracy_figure_reads_the_flow1_stage_of_each_counted_run(smoke
     assert label == dm1_label == "smoke; twin; third"  # the curves tables' rows, not the third table's
     c = client(tmp)
     stage, = figures.stage_runs(c, {"run_id": result["run_id"],
-                                               "experiment_id": c.get_run(result["run_id"]).info.experiment_id})
+                                    "experiment_id": c.get_run(result["run_id"]).info.experiment_id})
     history = sorted((m.timestamp, m.value) for m in c.get_metric_history(stage.info.run_id,
                                                                           "val/synthetic_sun3d/epe"))
     zero = c.get_metric_history(stage.info.run_id, "val/synthetic_sun3d/zero_flow_epe")[0].value
@@ -182,7 +182,7 @@ def test_time_to_accuracy_figure_reads_the_flow1_stage_of_each_counted_run(smoke
     assert minutes == pytest.approx([(t - stage.info.start_time) / 60000 for t, _ in history])
     assert all(m >= 0 for m in minutes)
     dm1, = figures.stage_runs(c, {"run_id": result["run_id"],
-                                "experiment_id": c.get_run(result["run_id"]).info.experiment_id}, "dm1")
+                                  "experiment_id": c.get_run(result["run_id"]).info.experiment_id}, "dm1")
     dm1_history = sorted((m.timestamp, m.value) for m in c.get_metric_history(dm1.info.run_id,
                                                                               "val/synthetic_sun3d/tran_deg"))
     assert translations == pytest.approx([v for _, v in dm1_history])
