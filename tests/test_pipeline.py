@@ -173,21 +173,20 @@ def test_time_to_accuracy_figure_reads_the_flow1_stage_of_each_counted_run(smoke
     (label, minutes, ratios), (dm1_label, dm1_minutes, translations) = drawn  # flow1's panel, then dm1's
     assert label == dm1_label == "smoke; twin; third"  # the curves tables' rows, not the third table's
     c = client(tmp)
-    stage, = figures.stage_runs(c, {"run_id": result["run_id"],
-                                    "experiment_id": c.get_run(result["run_id"]).info.experiment_id})
+    job = c.get_run(result["run_id"])
+    counted = {"run_id": job.info.run_id, "experiment_id": job.info.experiment_id}
+    stage, = figures.stage_runs(c, counted)
     history = sorted((m.timestamp, m.value) for m in c.get_metric_history(stage.info.run_id,
                                                                           "val/synthetic_sun3d/epe"))
     zero = c.get_metric_history(stage.info.run_id, "val/synthetic_sun3d/zero_flow_epe")[0].value
     assert ratios == pytest.approx([v / zero for _, v in history])
     assert minutes == pytest.approx([(t - stage.info.start_time) / 60000 for t, _ in history])
     assert all(m >= 0 for m in minutes)
-    dm1, = figures.stage_runs(c, {"run_id": result["run_id"],
-                                  "experiment_id": c.get_run(result["run_id"]).info.experiment_id}, "dm1")
+    dm1, = figures.stage_runs(c, counted, "dm1")
     dm1_history = sorted((m.timestamp, m.value) for m in c.get_metric_history(dm1.info.run_id,
                                                                               "val/synthetic_sun3d/tran_deg"))
     assert translations == pytest.approx([v for _, v in dm1_history])
     assert dm1_minutes == pytest.approx([(t - dm1.info.start_time) / 60000 for t, _ in dm1_history])
-    job = c.get_run(result["run_id"])
     cached = {"run_id": "a-job-that-found-flow1-in-the-cache", "experiment_id": job.info.experiment_id,
               "artifact_uri": job.info.artifact_uri}
     assert [r.info.run_id for r in figures.stage_runs(c, cached)] == [stage.info.run_id]
