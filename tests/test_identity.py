@@ -80,3 +80,54 @@ def test_keys_do_not_depend_on_where_scenes_are_cached(tmp_path):
     assert identity.is_semantic("data.size") and identity.is_semantic("data.path")
     cfg = _compose(f"data.cache_dir={tmp_path}/renders", "seed=2", hydra=True)
     assert cfg.hydra.job.override_dirname == "seed=2"
+
+
+def test_the_code_behind_each_version_is_recorded_beside_it():
+    """resources.RECORDED_SOURCES holds the digests of the code as it is: an edit of a net, a loss, the data a
+    stage draws, a stage module or the scene generator fails here until its digest is recorded, with
+    identity.CODE_VERSION (or synthetic.GENERATOR_VERSION) bumped where the edit changes what a stage (or a
+    scene) is."""
+    from demon_lab.data import synthetic
+
+    bump = {"stage": "demon_lab.pipeline.identity.CODE_VERSION",
+            "generator": "demon_lab.data.synthetic.GENERATOR_VERSION"}
+    for name, paths in resources.SOURCES.items():
+        actual = resources.source_digest(paths)
+        assert actual == resources.RECORDED_SOURCES[name], (
+            f"the {name} code changed (digest {actual}): bump {bump[name]} if what it computes changes with it, "
+            f"and record {name!r}: {actual!r} in demon_lab.resources.RECORDED_SOURCES")
+    assert identity.versions() == {"code_version": identity.CODE_VERSION,
+                                   "generator_version": synthetic.GENERATOR_VERSION}
+
+
+def test_source_digest_follows_code_not_comments_docstrings_or_layout(tmp_path):
+    def digest_of(text: str) -> str:
+        (tmp_path / "pkg").mkdir(exist_ok=True)
+        (tmp_path / "pkg" / "net.py").write_text(text)
+        return resources.source_digest(["pkg"], root=tmp_path)
+
+    base = digest_of('"""A net."""\n\ndef f(x):\n    """Doubles."""\n    return 2 * x  # twice\n')
+    assert digest_of('"""A net, documented anew."""\n\n\ndef f(x):\n    """Doubles x."""\n\n'
+                     '    return 2 * x  # two times\n') == base
+    assert digest_of('"""A net."""\n\ndef f(x):\n  """Doubles."""\n  return 2 * x\n') == base  # indentation width
+    assert digest_of('"""A net."""\n\ndef f(x):\n    """Doubles."""\n    return 3 * x\n') != base
+    assert digest_of('"""A net."""\n\ndef f(x):\n    """Doubles."""\n    return "2" * x\n') != base  # a string in code
+    (tmp_path / "pkg" / "other.py").write_text("y = 1\n")
+    assert digest_of('"""A net."""\n\ndef f(x):\n    """Doubles."""\n    return 2 * x  # twice\n') != base  # a new file
+
+
+def test_code_other_than_the_recorded_keys_its_stages_and_runs_apart(monkeypatch):
+    """An edited install (the digest of its stage or generator code is not the recorded one) never reuses a
+    stage or run of the recorded code: its version carries its digest, and so do its keys."""
+    cfg = _compose("scale=smoke")
+    stages, run = [s.key for s in stage_dirs(cfg)], identity.run_key(cfg)
+    for name in resources.SOURCES:
+        with monkeypatch.context() as m:
+            m.setitem(resources.RECORDED_SOURCES, name, "0" * 16)
+            resources.versioned.cache_clear()
+            version = identity.versions()[{"stage": "code_version", "generator": "generator_version"}[name]]
+            assert version.endswith("+" + resources.source_digest(resources.SOURCES[name]))
+            assert identity.run_key(cfg) != run
+            assert all(a != b for a, b in zip([s.key for s in stage_dirs(cfg)], stages, strict=True))
+        resources.versioned.cache_clear()
+    assert [s.key for s in stage_dirs(cfg)] == stages and identity.run_key(cfg) == run

@@ -442,7 +442,7 @@ def test_sweep_key_follows_what_the_jobs_compute_and_the_versions(monkeypatch):
     base = key("seed=0,1", "+experiment=study")
     assert key("seed=0,1", "+experiment=study", "threads=1", "tracking=local_server") == base
     assert key("seed=0,1,2", "+experiment=study") != base
-    monkeypatch.setattr(synthetic, "GENERATOR_VERSION", synthetic.GENERATOR_VERSION + 1)
+    monkeypatch.setattr(synthetic, "generator_version", lambda: synthetic.GENERATOR_VERSION + 1)
     assert key("seed=0,1", "+experiment=study") != base  # new scenes: a new parent run
 
 

@@ -9,7 +9,7 @@ callbacks and the job's evaluation, each set on its own loader (:mod:`demon_lab.
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -50,13 +50,16 @@ class Draws:
 
 class DemonDataModule(L.LightningDataModule):
     """A stage's training pairs: ``train`` is a list of ``{weight, dataset}`` sources, drawn as
-    ``draws`` says; ``pin_memory``: page-locked batches (asynchronous copies to a CUDA device)."""
+    ``draws`` says; ``pin_memory``: page-locked batches (asynchronous copies to a CUDA device); ``fields``:
+    what each draw carries besides its sample (:class:`demon_lab.data.mixture.MixtureDataset`)."""
 
     def __init__(self, train: Sequence[Mapping[str, Any]], draws: Draws = Draws(), num_workers: int = 0,
-                 pin_memory: bool = False):
+                 pin_memory: bool = False,
+                 fields: Callable[[Mapping[str, torch.Tensor]], Mapping[str, Any]] | None = None):
         super().__init__()
         self.train_sources = [(float(e["weight"]), e["dataset"]) for e in train]
         self.draws, self.num_workers, self.pin_memory = draws, int(num_workers), bool(pin_memory)
+        self.fields = fields
         self._sampler: MixtureSampler | None = None
 
     def _loader(self, dataset, **kwargs) -> DataLoader:
@@ -85,4 +88,4 @@ class DemonDataModule(L.LightningDataModule):
         self._sampler = MixtureSampler(lengths, weights, d.samples_per_epoch, seed=d.seed, skip=d.skip, rank=d.rank,
                                        world=d.world, batch=d.batch_size, easy_first=d.easy_first, order=order,
                                        lead=lead, fresh=fresh)
-        return self._loader(MixtureDataset(datasets), sampler=self._sampler, drop_last=True)
+        return self._loader(MixtureDataset(datasets, self.fields), sampler=self._sampler, drop_last=True)

@@ -27,7 +27,7 @@ import torch
 from demon_lab.data import sample as smp
 from demon_lab.data import synthetic
 from demon_lab.data.readers import demon_h5, middlebury, pair_folder, tum
-from demon_lab.data.synthetic import GENERATOR_VERSION, render_key
+from demon_lab.data.synthetic import generator_version, render_key
 from demon_lab.resources import cache_root
 
 SPLIT_SEEDS = {"train": 0, "val": 10_000_000, "test": 20_000_000}
@@ -105,26 +105,40 @@ class PairDataset(torch.utils.data.Dataset):
 
     def __getitem__(self, key: int | tuple[int, int]) -> smp.Sample:
         index, draw = (key, None) if isinstance(key, int | np.integer) else key
-        if not 0 <= index < len(self):
-            raise IndexError(f"{self.name}: index {index} out of range 0..{len(self) - 1}")
-        native = self.load(int(index)) if draw is None else self.load_training(int(index))
+        self._check_index(index)
+        if draw is not None:
+            choice = smp.augmentation_choice(np.random.default_rng([self.seed, int(draw)])) if self.augment else None
+            return self._training_draws(int(index), [choice])[0]
+        native = self.load(int(index))
         native.pop("meta", None)
         unknown_motion = native.pop("motion_unknown", False)
-        sample = self._prepare(native, self.size, derived=draw is None)
-        if self.gt_size is not None and draw is None:  # (an evaluation's ground truth; a draw drops it)
+        sample = self._prepare(native, self.size)
+        if self.gt_size is not None:  # an evaluation's ground truth
             truth = sample if self.gt_size == tuple(sample["image1"].shape[1:]) else self._prepare(native, self.gt_size)
             sample.update(gt_inv_depth=truth["inv_depth"], gt_flow=truth["flow"], gt_intrinsics=truth["intrinsics"])
-        if draw is not None:  # a training draw: only what the stages and losses read (they derive
-            # flow and normals from the depth and motion), so augmentation flips nothing else
-            sample = {k: v for k, v in sample.items() if k in TRAINING_KEYS}
-            if self.augment:
-                sample = smp.augment(sample, np.random.default_rng([self.seed, int(draw)]), normals=False)
-        if unknown_motion:  # a source without camera poses (DeMoN's nyu2_test.h5): no motion, no flow
-            sample["motion"] = torch.full_like(sample["motion"], math.nan)
-            for key in ("flow", "gt_flow"):
-                if key in sample:
-                    sample[key] = torch.full_like(sample[key], math.nan)
-        return sample
+        return _without_motion(sample) if unknown_motion else sample
+
+    def training_pairs(self, index: int) -> list[smp.Sample]:
+        """Every training draw sample ``index`` can give: one per augmentation
+        (:data:`demon_lab.data.sample.AUGMENTATIONS`, in its order) where the set augments, else the one
+        draw; each as ``self[(index, draw)]`` gives it."""
+        self._check_index(index)
+        return self._training_draws(int(index), list(smp.AUGMENTATIONS) if self.augment else [None])
+
+    def _check_index(self, index: int) -> None:
+        if not 0 <= index < len(self):
+            raise IndexError(f"{self.name}: index {index} out of range 0..{len(self) - 1}")
+
+    def _training_draws(self, index: int, choices: list[tuple[bool, bool] | None]) -> list[smp.Sample]:
+        """The training draws of sample ``index`` under each augmentation of ``choices`` (None: none)."""
+        native = self.load_training(index)
+        native.pop("meta", None)
+        unknown_motion = native.pop("motion_unknown", False)
+        # only what the stages and losses read (they derive flow and normals from the depth and motion),
+        # so augmentation flips nothing else
+        sample = {k: v for k, v in self._prepare(native, self.size, derived=False).items() if k in TRAINING_KEYS}
+        draws = [sample if choice is None else smp.augmented(sample, *choice, normals=False) for choice in choices]
+        return [_without_motion(d) for d in draws] if unknown_motion else draws
 
     def _prepare(self, sample: smp.Sample, size: tuple[int, int] | None, derived: bool = True) -> smp.Sample:
         target = smp.geo.DEMON_INTRINSICS if self.fixed_intrinsics else None
@@ -135,6 +149,15 @@ class PairDataset(torch.utils.data.Dataset):
         if self.normalize_translation:
             sample = smp.normalize_translation(sample)
         return sample
+
+
+def _without_motion(sample: smp.Sample) -> smp.Sample:
+    """A sample of a source without camera poses (DeMoN's nyu2_test.h5): no motion, no flow."""
+    sample["motion"] = torch.full_like(sample["motion"], math.nan)
+    for key in ("flow", "gt_flow"):
+        if key in sample:
+            sample[key] = torch.full_like(sample[key], math.nan)
+    return sample
 
 
 class SyntheticDataset(PairDataset):
@@ -172,7 +195,7 @@ class SyntheticDataset(PairDataset):
         self.render_size = self.size  # rendered directly at the target size and intrinsics
         self.fixed_intrinsics = False
         self.cache_key = render_key({"preset": dataclasses.asdict(self.preset), "size": self.render_size,
-                                   "supersample": self.supersample, "version": GENERATOR_VERSION})
+                                   "supersample": self.supersample, "version": generator_version()})
         if cache_dir is False:
             self.cache = None
         else:

@@ -6,7 +6,7 @@ scenes, resumable and sharded across processes)."""
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Mapping, Sequence
 
 import numpy as np
 import torch
@@ -31,17 +31,21 @@ def flow_order(dataset: PairDataset) -> np.ndarray:
 
 
 class MixtureDataset(torch.utils.data.Dataset):
-    """Several datasets behind one index space of ``(dataset, index, draw_seed)`` keys."""
+    """Several datasets behind one index space of ``(dataset, index, draw_seed)`` keys. ``fields``, a
+    function of a drawn sample, adds what it returns to the sample (the pair's classical priors:
+    :mod:`demon_lab.pipeline.stages.priors`)."""
 
-    def __init__(self, datasets: Sequence[PairDataset]):
-        self.datasets = list(datasets)
+    def __init__(self, datasets: Sequence[PairDataset],
+                 fields: Callable[[smp.Sample], Mapping[str, torch.Tensor]] | None = None):
+        self.datasets, self.fields = list(datasets), fields
 
     def __len__(self) -> int:
         return sum(len(d) for d in self.datasets)
 
     def __getitem__(self, key: tuple[int, int, int]) -> smp.Sample:
         which, index, draw = key
-        return self.datasets[which][(index, draw)]
+        sample = self.datasets[which][(index, draw)]
+        return sample if self.fields is None else {**sample, **self.fields(sample)}
 
 
 class MixtureSampler(torch.utils.data.Sampler):

@@ -326,14 +326,23 @@ def _flip_sample(sample: Sample, dims: tuple[int, ...], sign: torch.Tensor,
     return out
 
 
-def augment(sample: Sample, rng: np.random.Generator, normals: bool = True) -> Sample:
-    """DeMoN's augmentation: 180-degree rotation and horizontal mirror, each with p = 0.5.
+AUGMENTATIONS = ((False, False), (False, True), (True, False), (True, True))
+"""Every ``(rotate, mirror)`` choice of DeMoN's augmentation (:func:`augment`): a training pair is one
+of its scene's four."""
 
-    ``normals=False`` returns the sample without its ``normals`` map instead of recomputing it from
-    the augmented depth: the training losses derive their normals from the depth pyramid
-    (:class:`demon_lab.core.losses.GroundTruth`), so training skips a map nobody reads (its cost:
-    docs/notes/2026-11-cpu-profile.md, "Time and memory")."""
+
+def augmentation_choice(rng: np.random.Generator) -> tuple[bool, bool]:
+    """The ``(rotate, mirror)`` choice of one draw of DeMoN's augmentation, each with p = 0.5."""
     rotate, flip = rng.random() < 0.5, rng.random() < 0.5
+    return bool(rotate), bool(flip)
+
+
+def augmented(sample: Sample, rotate: bool, flip: bool, normals: bool = True) -> Sample:
+    """``sample`` turned by 180 degrees (``rotate``), then mirrored (``flip``): one of
+    :data:`AUGMENTATIONS`. ``normals=False`` returns the sample without its ``normals`` map instead of
+    recomputing it from the augmented depth: the training losses derive their normals from the depth
+    pyramid (:class:`demon_lab.core.losses.GroundTruth`), so training skips a map nobody reads (its
+    cost: docs/notes/2026-11-cpu-profile.md, "Time and memory")."""
     if rotate:
         sample = rotate_180(sample, normals=normals and not flip)  # the mirror recomputes them
     if flip:
@@ -341,3 +350,9 @@ def augment(sample: Sample, rng: np.random.Generator, normals: bool = True) -> S
     if not normals:
         sample = {k: v for k, v in sample.items() if k != "normals"}
     return sample
+
+
+def augment(sample: Sample, rng: np.random.Generator, normals: bool = True) -> Sample:
+    """DeMoN's augmentation: 180-degree rotation and horizontal mirror, each with p = 0.5
+    (:func:`augmentation_choice`, then :func:`augmented`)."""
+    return augmented(sample, *augmentation_choice(rng), normals=normals)

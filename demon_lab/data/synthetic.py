@@ -46,9 +46,18 @@ px: the views aliased differently), tiles span 0.6-1.5 camera distances (before 
 preset: tens of repeats), procedural tiles and stripes take a colour per cell (before: periodic)."""
 
 
+def generator_version() -> int | str:
+    """:data:`GENERATOR_VERSION`, where the generator's code is the code it names; else
+    ``"<version>+<digest>"``: scenes of other code are cached and keyed apart
+    (:func:`demon_lab.resources.versioned`)."""
+    from demon_lab.resources import versioned
+
+    return versioned(GENERATOR_VERSION, "generator")
+
+
 def render_key(description: Mapping[str, Any]) -> str:
     """The cache folder key of a preset's rendering: the first 16 hex digits of the sha1 of its
-    description (preset, size, supersampling, :data:`GENERATOR_VERSION`) as sorted JSON."""
+    description (preset, size, supersampling, :func:`generator_version`) as sorted JSON."""
     blob = json.dumps(dict(description), sort_keys=True, default=str)
     return hashlib.sha1(blob.encode()).hexdigest()[:16]
 

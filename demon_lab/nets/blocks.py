@@ -123,19 +123,56 @@ def add_encoder_levels(net: nn.Module, width: float, variant: str, conv5_kernel:
     return c5
 
 
+CORRELATION_VERSION = 2
+"""How :func:`correlation` computes, where it changes the rounding of a correlation front's nets (their
+keys carry it: :func:`demon_lab.pipeline.identity.model_identity`): 1, the channel means of the D*D shifted
+products, concatenated, differentiated by autograd; 2, the same forward pass (bit for bit) as one
+operation with its own backward pass (:class:`Correlation`), equal to version 1 within float rounding."""
+
+
 def correlation(features1: torch.Tensor, features2: torch.Tensor, max_displacement: int,
                 stride: int = 1) -> torch.Tensor:
     """FlowNetC's correlation of two (B, C, H, W) feature maps (Dosovitskiy et al. 2015, Eq. 1 with a
     1x1 patch): channel ``k`` of the (B, D*D, H, W) result, ``D = 2 * (max_displacement // stride) + 1``,
     is the channel mean of ``features1[x] * features2[x + d_k]`` for the displacement ``d_k`` (row-major
     over ``dy``, then ``dx``, each from ``-max_displacement`` to ``max_displacement`` in steps of
-    ``stride``); zero where ``x + d_k`` leaves the map."""
-    reach = (max_displacement // stride) * stride
-    height, width = features1.shape[2:]
-    padded = F.pad(features2, (reach, reach, reach, reach))
-    shifts = range(-reach, reach + 1, stride)
-    window = lambda dy, dx: padded[:, :, reach + dy: reach + dy + height, reach + dx: reach + dx + width]  # noqa: E731
-    return torch.cat([(features1 * window(dy, dx)).mean(1, keepdim=True) for dy in shifts for dx in shifts], 1)
+    ``stride``); zero where ``x + d_k`` leaves the map. One operation (:class:`Correlation`)."""
+    return Correlation.apply(features1, features2, max_displacement, stride)
+
+
+class Correlation(torch.autograd.Function):
+    """:func:`correlation` with its own backward pass: the gradients of all displacements accumulate
+    in place into one buffer per input, where autograd would keep every displacement's product and
+    sum a zero-padded gradient per displacement (the two timed against each other: ``python -m
+    demon_lab.bench train``, reports/bench.md)."""
+
+    @staticmethod
+    def forward(ctx, features1: torch.Tensor, features2: torch.Tensor, max_displacement: int,
+                stride: int) -> torch.Tensor:
+        reach = (max_displacement // stride) * stride
+        shifts = [(dy, dx) for dy in range(-reach, reach + 1, stride) for dx in range(-reach, reach + 1, stride)]
+        padded = F.pad(features2, (reach, reach, reach, reach))
+        batch, _, height, width = features1.shape
+        out = features1.new_empty(batch, len(shifts), height, width)
+        for k, (dy, dx) in enumerate(shifts):
+            window = padded[:, :, reach + dy: reach + dy + height, reach + dx: reach + dx + width]
+            out[:, k] = (features1 * window).mean(1)
+        ctx.save_for_backward(features1, padded)
+        ctx.reach, ctx.shifts = reach, shifts
+        return out
+
+    @staticmethod
+    def backward(ctx, grad: torch.Tensor):
+        features1, padded = ctx.saved_tensors
+        reach, (height, width) = ctx.reach, features1.shape[2:]
+        grad = grad / features1.shape[1]  # the channel mean's
+        grad1, grad_padded = torch.zeros_like(features1), torch.zeros_like(padded)
+        for k, (dy, dx) in enumerate(ctx.shifts):
+            window = (slice(None), slice(None), slice(reach + dy, reach + dy + height),
+                      slice(reach + dx, reach + dx + width))
+            grad1.addcmul_(grad[:, k: k + 1], padded[window])
+            grad_padded[window].addcmul_(grad[:, k: k + 1], features1)
+        return grad1, grad_padded[:, :, reach: reach + height, reach: reach + width], None, None
 
 
 def check_correlation(spec) -> tuple[int, int]:

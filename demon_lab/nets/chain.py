@@ -229,13 +229,20 @@ class DeMoN(nn.Module):
         self.refine_net = RefineNet(variant=variant, width=width)
 
     def bootstrap(self, pair: torch.Tensor, image2_2: torch.Tensor, intrinsics: torch.Tensor,
-                  gt2: GroundTruthInputs | None = None, oracle: str | None = None) -> Prediction:
-        flowconf5, flowconf2, prior_flow = self.flow_net1(pair)
+                  gt2: GroundTruthInputs | None = None, oracle: str | None = None,
+                  prior_flow: torch.Tensor | None = None, prior_motion: torch.Tensor | None = None) -> Prediction:
+        """The bootstrap pass. ``prior_flow``, ``prior_motion``: flow1's classical prior flow and
+        the 5-point motion of it (``dm1_prior=ransac_prior``) where the caller has them
+        (:meth:`flow_net1`, :meth:`prior_motion`); None computes them."""
+        flowconf5, flowconf2, prior_flow = self.flow_net1(pair, prior_flow)
         flow, conf = flowconf2[:, :2], flowconf2[:, 2:]
         dm_flow, dm_conf = flow, conf
         if oracle == "flow":  # the ground-truth flow replaces flow1's flow and its prior
-            dm_flow, dm_conf, prior_flow = gt2.flow, _oracle_confidence(gt2.flow), None
-        dm = self.depth_motion1(pair, image2_2, dm_flow, dm_conf, intrinsics, prior_flow=prior_flow)
+            dm_flow, dm_conf, prior_flow, prior_motion = gt2.flow, _oracle_confidence(gt2.flow), None, None
+        if self.dm1_prior != "ransac_prior":  # (then the motion dm1 corrects is not the prior flow's)
+            prior_motion = None
+        dm = self.depth_motion1(pair, image2_2, dm_flow, dm_conf, intrinsics, prior=prior_motion,
+                                prior_flow=prior_flow)
         return Prediction(flow, conf, flowconf5[:, :2], flowconf5[:, 2:], dm.inv_depth, dm.normals, dm.motion)
 
     def depth_motion1(self, pair: torch.Tensor, image2_2: torch.Tensor, flow: torch.Tensor, conf: torch.Tensor,
@@ -251,10 +258,15 @@ class DeMoN(nn.Module):
         dm = self.dm1(pair, depth_motion_net_inputs(image2_2, flow, conf, prior, intrinsics, self.compat))
         return replace(dm, motion=dm.motion + prior)
 
-    def flow_net1(self, pair: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
+    def flow_net1(self, pair: torch.Tensor, prior_flow: torch.Tensor | None = None
+                  ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
         """The bootstrap flow net: ``(flowconf5, flowconf2)`` as :class:`FlowNet` returns them, and its
-        classical prior flow at level 2 (``flow1_prior``; None without one)."""
-        prior_flow = self.flow1.prior_flow(pair) if self.flow1_prior else None
+        classical prior flow at level 2 (``flow1_prior``; None without one): ``prior_flow`` where the
+        caller has it, else computed (:meth:`FlowNet.prior_flow`)."""
+        if not self.flow1_prior:
+            prior_flow = None
+        elif prior_flow is None:
+            prior_flow = self.flow1.prior_flow(pair)
         return (*self.flow1(pair, prior2=prior_flow), prior_flow)
 
     def prior_motion(self, flow: torch.Tensor, intrinsics: torch.Tensor,

@@ -73,12 +73,23 @@ def without_render_cache(data: Any) -> Any:
     return data
 
 
-def versions() -> dict[str, int]:
-    """What every key includes besides its description: the training code's version and the
-    synthetic scene generator's (new scenes make old stages, runs and sweeps stale)."""
-    from demon_lab.data.synthetic import GENERATOR_VERSION
+def code_version() -> int | str:
+    """:data:`CODE_VERSION`, where the code that decides what a stage produces is the code it names;
+    else ``"<version>+<digest>"`` (:func:`demon_lab.resources.versioned`): no stage trained by other
+    code is ever reused."""
+    from demon_lab.resources import versioned
 
-    return {"code_version": CODE_VERSION, "generator_version": GENERATOR_VERSION}
+    return versioned(CODE_VERSION, "stage")
+
+
+def versions() -> dict[str, int | str]:
+    """What every key includes besides its description: the training code's version and the
+    synthetic scene generator's (new scenes make old stages, runs and sweeps stale), each with the
+    digest of its code where that code is not the code the version names (:func:`code_version`,
+    :func:`demon_lab.data.synthetic.generator_version`)."""
+    from demon_lab.data.synthetic import generator_version
+
+    return {"code_version": code_version(), "generator_version": generator_version()}
 
 
 def digest(payload: Any, algorithm: str = "sha256", sort_keys: bool = True) -> str:
@@ -125,9 +136,15 @@ def leave_out_neutral(plain: dict[str, Any], prefix: str = "") -> dict[str, Any]
 
 def model_identity(model: dict[str, Any]) -> dict[str, Any]:
     """A plain ``model`` config as keys hold it: its neutral options left out (:func:`leave_out_neutral`),
-    without :data:`EXECUTION_KEYS` (which never change a key), and ``weights`` named by the file's
+    without :data:`EXECUTION_KEYS` (which never change a key), a correlation front with its
+    :data:`demon_lab.nets.blocks.CORRELATION_VERSION` (from 2 on), and ``weights`` named by the file's
     content (``sha256:...``), not its path: a moved file keeps its keys, a changed one gets new ones."""
     model = {k: v for k, v in leave_out_neutral(model, "model.").items() if k not in EXECUTION_KEYS}
+    if model.get("correlation") is not None:  # how the front computes (its rounding): the version since 1
+        from demon_lab.nets.blocks import CORRELATION_VERSION
+
+        if CORRELATION_VERSION > 1:
+            model["correlation_version"] = CORRELATION_VERSION
     if not model.get("weights"):
         return model
     return {**model, "weights": describe(model["weights"])}

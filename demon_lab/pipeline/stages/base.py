@@ -22,6 +22,21 @@ from demon_lab.pipeline.schema import LR_SCHEDULES
 from demon_lab.pipeline.stages.memo import FrozenMemo
 
 MULTISTEP_MILESTONES = (0.4, 0.6, 0.8)
+
+PRIOR_FIELDS = ("prior_flow", "prior_motion")
+"""The classical priors a training batch may carry, in :meth:`demon_lab.nets.chain.DeMoN.bootstrap`'s
+order (computed once per pair: :mod:`demon_lab.pipeline.stages.priors`)."""
+
+
+def pair_priors(batch: Mapping[str, torch.Tensor]) -> list[torch.Tensor]:
+    """The classical priors ``batch`` carries (:data:`PRIOR_FIELDS`, the leading ones it has)."""
+    given = []
+    for key in PRIOR_FIELDS:
+        if key not in batch:
+            break
+        given.append(batch[key])
+    return given
+
 FINAL_LR = 1e-6
 
 
@@ -119,12 +134,13 @@ class StageModule(L.LightningModule):
         with torch.no_grad():
             return self.memo(compute, *inputs) if self.memo is not None else compute(*inputs)
 
-    def bootstrap(self, pair: torch.Tensor, image2_2: torch.Tensor, intrinsics: torch.Tensor) -> Prediction:
-        """The frozen bootstrap pass, without gradient."""
-        return Prediction(*self.frozen(self._bootstrap_fields, pair, image2_2, intrinsics))
+    def bootstrap(self, pair: torch.Tensor, image2_2: torch.Tensor, intrinsics: torch.Tensor,
+                  batch: Mapping[str, torch.Tensor]) -> Prediction:
+        """The frozen bootstrap pass, without gradient, on the classical priors ``batch`` carries."""
+        return Prediction(*self.frozen(self._bootstrap_fields, pair, image2_2, intrinsics, *pair_priors(batch)))
 
-    def _bootstrap_fields(self, pair, image2_2, intrinsics) -> tuple[torch.Tensor, ...]:
-        p = self.chain.bootstrap(pair, image2_2, intrinsics)
+    def _bootstrap_fields(self, pair, image2_2, intrinsics, *priors) -> tuple[torch.Tensor, ...]:
+        p = self.chain.bootstrap(pair, image2_2, intrinsics, None, None, *priors)
         return tuple(getattr(p, f) for f in Prediction.__dataclass_fields__)
 
     def training_step(self, batch: Mapping[str, torch.Tensor], batch_idx: int) -> torch.Tensor:

@@ -13,7 +13,7 @@ import torch
 
 from demon_lab.core import losses
 from demon_lab.nets.chain import Prediction, ground_truth_inputs
-from demon_lab.pipeline.stages.base import StageModule
+from demon_lab.pipeline.stages.base import PRIOR_FIELDS, StageModule, pair_priors
 
 
 class FlowStage(StageModule):
@@ -39,13 +39,13 @@ class FlowStage(StageModule):
     def stage_loss(self, batch, gt):
         pair, image2_2, K = self.inputs(batch)
         if self.net == "flow1":
-            prior2 = None
-            if self.chain.flow1_prior:
+            prior2 = batch.get("prior_flow")  # computed once per pair where the data carries it
+            if self.chain.flow1_prior and prior2 is None:
                 prior2, = self.frozen(lambda p: (self.chain.flow1.prior_flow(p),), pair)
             flow5, flow2 = self.chain.flow1(pair, prior2=prior2)
         else:
             oracle = self.oracle == "depth_motion"
-            prev = self.bootstrap(pair, image2_2, K) if not oracle or self.chain.flow2_prior else None
+            prev = self.bootstrap(pair, image2_2, K, batch) if not oracle or self.chain.flow2_prior else None
             with torch.no_grad():
                 src = ground_truth_inputs(batch, K) if oracle else prev
             flow5, flow2 = self.chain.flow_net2(pair, image2_2, K, src, prev)
@@ -73,10 +73,10 @@ class DepthMotionStage(StageModule):
         given = self.oracle == "flow" or self.global_step < self.gt_flow_warmup * self.steps
         prior = None  # dm1's prior motion where the memo has it
         if self.net == "dm1" and not given:
-            flow, conf, *prior = self.frozen(self._bootstrap_flow, pair, K)
+            flow, conf, *prior = self.frozen(self._bootstrap_flow, pair, K, *pair_priors(batch))
             prior = prior[0] if prior else None
         elif self.net == "dm2":
-            *fields, flow, conf = self.frozen(self._iterative_flow, pair, image2_2, K)
+            *fields, flow, conf = self.frozen(self._iterative_flow, pair, image2_2, K, *pair_priors(batch))
             prev = Prediction(*fields)
         if given:
             with torch.no_grad():
@@ -89,17 +89,19 @@ class DepthMotionStage(StageModule):
         ramp = self.ramp(2.0 if self.net == "dm1" else 1.0)
         return losses.depth_motion_loss(dm.inv_depth, dm.normals, dm.motion, gt, self.weights, ramp=ramp)
 
-    def _bootstrap_flow(self, pair, K):
+    def _bootstrap_flow(self, pair, K, prior_flow=None, prior_motion=None):
         """``flow1``'s flow and confidence, and with ``dm1_prior`` the RANSAC motion of that flow (or of
-        its prior flow)."""
-        _, flowconf, prior_flow = self.chain.flow_net1(pair)
+        its prior flow); ``prior_flow``, ``prior_motion`` where the batch carries them (``ransac_prior``'s
+        motion is the prior flow's: :mod:`demon_lab.pipeline.stages.priors`)."""
+        _, flowconf, prior_flow = self.chain.flow_net1(pair, prior_flow)
         flow, conf = _flow_and_conf(flowconf)
-        prior = self.chain.prior_motion(flow, K, prior_flow)
+        given = prior_motion is not None and self.chain.dm1_prior == "ransac_prior"
+        prior = prior_motion if given else self.chain.prior_motion(flow, K, prior_flow)
         return (flow, conf) if prior is None else (flow, conf, prior)
 
-    def _iterative_flow(self, pair, image2_2, K):
+    def _iterative_flow(self, pair, image2_2, K, *priors):
         """The bootstrap pass's fields, then the iterative flow net's flow and confidence on it."""
-        prev = self.chain.bootstrap(pair, image2_2, K)
+        prev = self.chain.bootstrap(pair, image2_2, K, None, None, *priors)
         return (*_fields(prev), *_flow_and_conf(self.chain.flow_net2(pair, image2_2, K, prev, prev)[1]))
 
 
@@ -129,8 +131,9 @@ class IterativeStage(StageModule):
 
     def stage_loss(self, batch, gt):
         pair, image2_2, K = self.inputs(batch)
-        prev = self.bootstrap(pair, image2_2, K)
-        samples = [({k: v[i] for k, v in batch.items() if isinstance(v, torch.Tensor)},
+        prev = self.bootstrap(pair, image2_2, K, batch)
+        # (a queued sample's previous prediction is its own: it needs no priors)
+        samples = [({k: v[i] for k, v in batch.items() if isinstance(v, torch.Tensor) and k not in PRIOR_FIELDS},
                     _index(prev, i)) for i in range(pair.shape[0])]
         combined = samples + self.queue[: self.queue_size]
         self.queue = self.queue[self.queue_size:]
@@ -190,13 +193,13 @@ class RefineStage(StageModule):
 
     def stage_loss(self, batch: Mapping[str, torch.Tensor], gt):
         pair, image2_2, K = self.inputs(batch)
-        inv_depth, = self.frozen(self._passes, pair, image2_2, K)
+        inv_depth, = self.frozen(self._passes, pair, image2_2, K, *pair_priors(batch))
         refined = self.chain.refine(batch["image1"], inv_depth)
         return losses.refine_loss(refined, gt, self.weights, ramp=self.ramp(1.0))
 
-    def _passes(self, pair, image2_2, K):
+    def _passes(self, pair, image2_2, K, *priors):
         """The inverse depth of the frozen chain's last pass."""
-        p = self.chain.bootstrap(pair, image2_2, K)
+        p = self.chain.bootstrap(pair, image2_2, K, None, None, *priors)
         for _ in range(self.iterations):
             p = self.chain.iterate(pair, image2_2, K, p)
         return (p.inv_depth,)

@@ -29,6 +29,7 @@ from demon_lab.pipeline.schema import FlowStageSpec
 from demon_lab.pipeline.settings import JobSettings
 from demon_lab.pipeline.stages import modules
 from demon_lab.pipeline.stages.cache import StageDir, atomic_checkpoint_io, load_checkpoint
+from demon_lab.pipeline.stages.priors import PairPriors, PriorTable, warm_priors
 from demon_lab.pipeline.stages.schedule import build_chain, load_stage, stage_dirs
 
 log = logging.getLogger(__name__)
@@ -41,13 +42,14 @@ class TrainingDiverged(FloatingPointError):
 
 def build_datamodule(cfg: DictConfig, job: JobSettings, batch_size: int, samples: int, skip: int = 0,
                      easy_first=None, pin_memory: bool = False, layers_first: float | None = None,
-                     fresh_scenes: float = 0.0):
+                     fresh_scenes: float = 0.0, priors: PriorTable | None = None):
     """Training data for ``samples`` draws in batches of ``batch_size`` (global: under DDP each
     process loads its share of every batch); ``easy_first``, ``layers_first``, ``fresh_scenes``: a
     stage's curriculum (MixtureSampler: the easiest samples first; fresh 2-D layers for the first part
     of the stage; new synthetic scenes at a steady rate per draw);
-    ``pin_memory``: batches in page-locked memory (faster copies to a CUDA device). ``job``: ``cfg``'s
-    settings (the caller's, read once)."""
+    ``pin_memory``: batches in page-locked memory (faster copies to a CUDA device); ``priors``: each
+    pair's classical priors, computed once per pair (:mod:`demon_lab.pipeline.stages.priors`). ``job``:
+    ``cfg``'s settings (the caller's, read once)."""
     from demon_lab.data.datamodule import DemonDataModule, Draws
     from demon_lab.pipeline.config import instantiate
 
@@ -56,12 +58,13 @@ def build_datamodule(cfg: DictConfig, job: JobSettings, batch_size: int, samples
     draws = Draws(batch_size=batch_size // world, samples_per_epoch=samples, seed=job.seed, skip=skip,
                   rank=global_rank(cfg), world=world, easy_first=None if easy_first is None else tuple(easy_first),
                   layers_first=layers_first, layers_size=job.data.size, fresh_scenes=float(fresh_scenes))
-    return DemonDataModule(train, draws, num_workers=job.data.num_workers, pin_memory=pin_memory)
+    return DemonDataModule(train, draws, num_workers=job.data.num_workers, pin_memory=pin_memory, fields=priors)
 
 
 def train_stage(cfg: DictConfig, chain: DeMoN, stage: StageDir, logger: L.pytorch.loggers.Logger | None,
-                progress: bool = True) -> dict[str, float]:
-    """Train one stage into ``stage`` (resuming from its last checkpoint); returns figures."""
+                progress: bool = True, priors: PriorTable | None = None) -> dict[str, float]:
+    """Train one stage into ``stage`` (resuming from its last checkpoint), its pairs carrying their
+    classical ``priors`` where given; returns figures."""
     job = JobSettings.of(cfg)
     spec = job.stages[stage.name]
     if spec.steps == 0:  # trains nothing: the nets as they are (from model.weights or an earlier stage)
@@ -77,14 +80,14 @@ def train_stage(cfg: DictConfig, chain: DeMoN, stage: StageDir, logger: L.pytorc
     batch = spec.batch_size or job.data.batch_size
     resume = stage.last_checkpoint if stage.last_checkpoint.is_file() else None
     if resume is None and isinstance(spec, FlowStageSpec) and spec.restarts is not None:
-        resume = screen_restarts(cfg, job, chain, stage, module, logger)
+        resume = screen_restarts(cfg, job, chain, stage, module, logger, priors)
     start_step = _checkpoint_step(resume) if resume is not None else 0
     # A resumed stage continues the sample sequence where the checkpoint left it: same batches,
     # same result as an uninterrupted run (on the CPU).
     # With DDP the global batch is the configured one, each process taking its slice of every batch
     # (demon_lab's sampler deals them, not Lightning's, which would reshuffle the sequence).
     datamodule = build_datamodule(cfg, job, batch, spec.steps * batch, skip=start_step * batch,
-                                  **spec.curriculum(),
+                                  **spec.curriculum(), priors=priors,
                                   pin_memory=resolve_accelerator(job.trainer.accelerator) == "cuda")
     checkpoint = L.pytorch.callbacks.ModelCheckpoint(
         dirpath=stage.path, filename="step{step}", save_last=True, save_top_k=0,
@@ -151,7 +154,7 @@ def _trainer(job: JobSettings, steps: int, **kwargs) -> L.Trainer:
 
 
 def screen_restarts(cfg: DictConfig, job: JobSettings, chain: DeMoN, stage: StageDir, module: L.LightningModule,
-                    logger: L.pytorch.loggers.Logger | None) -> Path:
+                    logger: L.pytorch.loggers.Logger | None, priors: PriorTable | None = None) -> Path:
     """The stage option ``restarts: [k, steps]`` (PWC-Net's practice of restarting a flow net stuck at
     a poor start): train ``k`` starts of the stage's net for its first ``steps`` steps, each on the
     stage's own first batches and learning rates, score each on the held-apart sets (``data.val``,
@@ -177,7 +180,7 @@ def screen_restarts(cfg: DictConfig, job: JobSettings, chain: DeMoN, stage: Stag
             with torch.random.fork_rng(devices=[]):
                 torch.manual_seed(job.seed * 1_000_003 + i)
                 net.apply(initialise)
-        data = build_datamodule(cfg, job, batch, spec.steps * batch, **spec.curriculum())
+        data = build_datamodule(cfg, job, batch, spec.steps * batch, **spec.curriculum(), priors=priors)
         # saved at its last step inside the epoch, as the stage's own checkpoints: the stage resumes from it
         saved = L.pytorch.callbacks.ModelCheckpoint(dirpath=stage.path, filename=f"restart{i}", save_top_k=-1,
                                                     every_n_train_steps=steps, enable_version_counter=False)
@@ -236,15 +239,23 @@ def prepare_chain(cfg: DictConfig, on_stage: Callable[[StageDir, str], L.pytorch
         if not cfg.model.weights:
             log.info("train=false: evaluating the untrained chain")
         return chain.eval(), [], figures
+    table = None
     if not all(stage.done() for stage in stage_dirs(cfg)):
         from demon_lab.data.datasets import warm_cache
         from demon_lab.pipeline.config import instantiate
 
         start = time.perf_counter()
-        rendered = warm_cache([instantiate(e.dataset) for e in cfg.data.train])
+        train = [instantiate(e.dataset) for e in cfg.data.train]
+        rendered = warm_cache(train)
         if rendered:
             log.info("rendered %d synthetic training scenes into the cache in %.0f s", rendered,
                      time.perf_counter() - start)
+        if PairPriors.of(chain) is not None:
+            start = time.perf_counter()
+            table, computed = warm_priors(train, PairPriors.of(chain))
+            if computed:
+                log.info("computed the classical priors of %d training scenes' pairs into the cache in %.0f s",
+                         computed, time.perf_counter() - start)
     for stage in stage_dirs(cfg):
         # Under DDP only rank 0 takes the lock (the other ranks join its training collectively).
         with stage.lock() if global_rank(cfg) == 0 else contextlib.nullcontext():
@@ -257,6 +268,6 @@ def prepare_chain(cfg: DictConfig, on_stage: Callable[[StageDir, str], L.pytorch
             logger = on_stage(stage, "train") if on_stage else None
             log.info("training stage %s (%s steps) -> %s", stage.name, cfg.schedule.stages[stage.name].steps,
                      stage.path)
-            figures[stage.name] = train_stage(cfg, chain, stage, logger, progress)
+            figures[stage.name] = train_stage(cfg, chain, stage, logger, progress, table)
     chain.eval()
     return chain, stage_dirs(cfg), figures
