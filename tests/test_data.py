@@ -931,9 +931,11 @@ def test_fresh_scenes_render_new_scenes_of_the_next_seeds_in_the_loaders_worker(
     module = DemonDataModule([{"weight": 1.0, "dataset": scenes}], Draws(
         batch_size=2, samples_per_epoch=24, fresh_scenes=0.25, layers_first=0.25, layers_size=(64, 64)), num_workers=1)
     loader = module.train_dataloader()
-    drawn = [i for s, i, _ in module._sampler if s == 0]
+    drawn = [i for s, i, _ in module.sampler if s == 0]
     assert max(drawn) == 3 + 18 // 4 - 1 and len(scenes) == 3
-    module._sampler.set_epoch(0)
+    ahead = module.fresh_scenes()  # what a stage renders before it trains: the set and the new scenes drawn
+    assert [len(d) for d in ahead] == [max(drawn) + 1] and ahead[0].cache == scenes.cache
+    module.sampler.set_epoch(0)
     batches = list(loader)
     assert len(batches) == 12
     cached = sorted(int(p.stem) for p in scenes.cache.glob("*.pt"))

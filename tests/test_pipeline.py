@@ -1104,8 +1104,15 @@ def test_the_learned_design_trains_every_stage_keeping_its_best_nets_on_fresh_sc
         assert f"stage/{stage}/keep_best_{metric}" in figures and figures[f"stage/{stage}/keep_best_seconds"] >= 0
     assert "stage/refine/keep_best_step" not in figures
     assert result["figures"]["flow1"]["keep_best_step"] == figures["stage/flow1/keep_best_step"]
-    rendered = {int(p.stem) for p in cache.glob("synthetic/synthetic_*-*/*.pt")}
-    assert max(rendered) >= cfg.data.train_length  # scenes past the set's own, rendered as training drew them
+    rendered = {(p.parent.name, int(p.stem)) for p in cache.glob("synthetic/synthetic_*-*/[0-9]*.pt")}
+    from demon_lab.data.datasets import SPLIT_SEEDS
+
+    # training scenes past the sets' own
+    fresh = [(name, i) for name, i in rendered if cfg.data.train_length <= i < SPLIT_SEEDS["val"]]
+    # rendered ahead of the stage that first draws them
+    ahead = figures["stage/flow1/fresh_scenes_rendered"] + figures.get("stage/dm1/fresh_scenes_rendered", 0)
+    assert len(fresh) == ahead
+    assert len(fresh) > 0
 
 
 def test_the_profiles_priors_alone_are_scored_beside_the_chain_and_change_none_of_its_rows(tmp_path, monkeypatch):
@@ -1138,3 +1145,24 @@ def test_the_profiles_priors_alone_are_scored_beside_the_chain_and_change_none_o
     assert not [r for r in evaluate_dataset(chain, dataset, iterations=0, oracle="flow")[0] if r["it"] == "priors"]
     plain = build_chain(compose_config(smoke_overrides(tmp_path))).eval()
     assert not [r for r in evaluate_dataset(plain, dataset, iterations=0)[0] if r["it"] == "priors"]
+
+
+def test_a_profiled_stage_logs_its_loops_largest_parts_and_keeps_its_keys():
+    """trainer.profile=true: the SimpleProfiler's actions become figures named as metrics, the largest first,
+    with the time outside the batches and the loader; the option is in no key."""
+    from demon_lab.pipeline import identity
+    from demon_lab.pipeline.stages.training import LOOP_PARTS, loop_parts
+
+    durations = {"run_training_epoch": [9.0], "run_training_batch": [0.5] * 10,
+                 "[_TrainingEpochLoop].train_dataloader_next": [0.1] * 10,
+                 "[Callback]KeepBest.on_train_batch_end": [0.0] * 9 + [1.5],
+                 **{f"[LightningModule]FlowStage.hook{i}": [0.01 * i] for i in range(12)}}
+    figures = loop_parts(durations, seconds=8.0)
+    assert list(figures)[:3] == ["profile/run_training_batch_seconds",
+                                 "profile/callback.KeepBest.on_train_batch_end_seconds",
+                                 "profile/trainingepochloop.train_dataloader_next_seconds"]
+    assert len(figures) == LOOP_PARTS + 1 and "profile/run_training_epoch_seconds" not in figures
+    assert figures["profile/outside_seconds"] == pytest.approx(8.0 - 5.0 - 1.0)
+    assert not identity.is_semantic("trainer.profile")
+    assert identity.run_key(compose_config(["scale=smoke", "trainer.profile=true"])) == \
+        identity.run_key(compose_config(["scale=smoke"]))

@@ -33,7 +33,7 @@ def _batch(samples):
 def test_a_pairs_priors_are_the_chains_for_a_batch_of_the_same_pairs(scenes):
     """Computed pair by pair (as the cache holds them), the DIS prior flow and its 5-point motion equal to the
     bit what the chain computes for a batch: flow1's prior flow and dm1's prior motion (ransac_prior)."""
-    samples = [p for d in scenes for i in range(len(d)) for p in d.training_pairs(i)]
+    samples = [p for d in scenes for i in range(len(d)) for p in d.training_pairs(i).values()]
     batch = _batch(samples)
     chain = DeMoN("v1", 0.25, SIZE, flow1_prior="dis_x2", dm1_prior="ransac_prior")
     pair = torch.cat([batch["image1"], batch["image2"]], 1)
@@ -60,16 +60,22 @@ def test_the_priors_are_computed_once_per_training_pair_and_read_at_every_draw(s
                         compute(self, samples))
     again, computed = pair_priors.warm_priors(scenes, priors)
     assert computed == 0 and calls == [] and again.known.keys() == table.known.keys()
-    draws = [d[(i, draw)] for d in scenes for i in range(len(d)) for draw in range(6)]
-    for draw in draws:
+    draws = [(d[(i, draw)], d.pair_key(i, draw)) for d in scenes for i in range(len(d)) for draw in range(6)]
+    assert len({key for _, key in draws}) == 16  # 4 scenes x 4 augmentations, each drawn
+    for draw, key in draws:
         expected = priors.compute([draw])[0]
-        got = again(draw)
+        got = again(draw, key)
         assert got.keys() == {"prior_flow", "prior_motion"}
         assert all(torch.equal(got[k], expected[k]) for k in got)
     assert again.misses == {} and calls == [1] * len(draws)  # (the expected values' calls, none of the table's)
-    other = SyntheticDataset("synthetic_mvs", length=1, size=SIZE, augment=True, cache_dir=False)[(0, 0)]
-    first = again(other)
-    assert len(again.misses) == 1 and again(other) is first and calls[-1] == 1
+    uncached = SyntheticDataset("synthetic_mvs", length=1, size=SIZE, augment=True, cache_dir=False)
+    other = uncached[(0, 0)]
+    assert uncached.pair_key(0, 0) is None
+    first = again(other, None)
+    assert len(again.misses) == 1 and again(other, None) is first and calls[-1] == 1
+    fresh = scenes[0].extended(1)  # a scene past the set's own: not computed ahead
+    first = again(fresh[(2, 0)], fresh.pair_key(2, 0))
+    assert len(again.misses) == 2 and again(fresh[(2, 0)], fresh.pair_key(2, 0)) is first
 
 
 def _chain():

@@ -55,12 +55,12 @@ class DemonDataModule(L.LightningDataModule):
 
     def __init__(self, train: Sequence[Mapping[str, Any]], draws: Draws = Draws(), num_workers: int = 0,
                  pin_memory: bool = False,
-                 fields: Callable[[Mapping[str, torch.Tensor]], Mapping[str, Any]] | None = None):
+                 fields: Callable[[Mapping[str, torch.Tensor], tuple | None], Mapping[str, Any]] | None = None):
         super().__init__()
         self.train_sources = [(float(e["weight"]), e["dataset"]) for e in train]
         self.draws, self.num_workers, self.pin_memory = draws, int(num_workers), bool(pin_memory)
         self.fields = fields
-        self._sampler: MixtureSampler | None = None
+        self.sampler: MixtureSampler | None = None
 
     def _loader(self, dataset, **kwargs) -> DataLoader:
         return DataLoader(dataset, batch_size=self.draws.batch_size, num_workers=self.num_workers,
@@ -85,7 +85,14 @@ class DemonDataModule(L.LightningDataModule):
             weights, datasets = (*weights, 0.0), (*datasets, layers)
             lengths, fresh = [*lengths, len(layers)], [*fresh, 0.0]
             lead = (len(datasets) - 1, d.layers_first)
-        self._sampler = MixtureSampler(lengths, weights, d.samples_per_epoch, seed=d.seed, skip=d.skip, rank=d.rank,
+        self.sampler = MixtureSampler(lengths, weights, d.samples_per_epoch, seed=d.seed, skip=d.skip, rank=d.rank,
                                        world=d.world, batch=d.batch_size, easy_first=d.easy_first, order=order,
                                        lead=lead, fresh=fresh)
-        return self._loader(MixtureDataset(datasets, self.fields), sampler=self._sampler, drop_last=True)
+        return self._loader(MixtureDataset(datasets, self.fields), sampler=self.sampler, drop_last=True)
+
+    def fresh_scenes(self) -> list[SyntheticDataset]:
+        """The sources' fresh scenes that this stage's draws meet (``Draws.fresh_scenes``), as the sets to
+        render ahead of it (:func:`demon_lab.data.datasets.warm_cache`): each fresh source grown by the
+        new scenes it meets. (After :meth:`train_dataloader`.)"""
+        counts = self.sampler.fresh_scenes() if self.sampler is not None else []
+        return [dataset.extended(n) for (_, dataset), n in zip(self.train_sources, counts) if n]

@@ -118,12 +118,23 @@ class PairDataset(torch.utils.data.Dataset):
             sample.update(gt_inv_depth=truth["inv_depth"], gt_flow=truth["flow"], gt_intrinsics=truth["intrinsics"])
         return _without_motion(sample) if unknown_motion else sample
 
-    def training_pairs(self, index: int) -> list[smp.Sample]:
-        """Every training draw sample ``index`` can give: one per augmentation
-        (:data:`demon_lab.data.sample.AUGMENTATIONS`, in its order) where the set augments, else the one
-        draw; each as ``self[(index, draw)]`` gives it."""
+    def training_pairs(self, index: int) -> dict[int, smp.Sample]:
+        """Every training draw sample ``index`` can give, each as ``self[(index, draw)]`` gives it, by
+        its augmentation's number (:meth:`augmentation_of`)."""
         self._check_index(index)
-        return self._training_draws(int(index), list(smp.AUGMENTATIONS) if self.augment else [None])
+        choices = list(smp.AUGMENTATIONS) if self.augment else [None]
+        return dict(zip([_number(c) for c in choices], self._training_draws(int(index), choices), strict=True))
+
+    def augmentation_of(self, draw: int) -> int:
+        """The augmentation a training draw ``draw`` applies, by number: ``2 * rotate + mirror``
+        (:data:`demon_lab.data.sample.AUGMENTATIONS`), -1 for none."""
+        return _number(smp.augmentation_choice(np.random.default_rng([self.seed, int(draw)])) if self.augment
+                       else None)
+
+    def pair_key(self, index: int, draw: int) -> tuple | None:
+        """What identifies the pair of the training draw ``(index, draw)`` across jobs, where a set can
+        say (its scenes cached on disk: :class:`SyntheticDataset`); None where it cannot."""
+        return None
 
     def _check_index(self, index: int) -> None:
         if not 0 <= index < len(self):
@@ -149,6 +160,10 @@ class PairDataset(torch.utils.data.Dataset):
         if self.normalize_translation:
             sample = smp.normalize_translation(sample)
         return sample
+
+
+def _number(choice: tuple[bool, bool] | None) -> int:
+    return -1 if choice is None else 2 * choice[0] + choice[1]
 
 
 def _without_motion(sample: smp.Sample) -> smp.Sample:
@@ -216,6 +231,10 @@ class SyntheticDataset(PairDataset):
 
     def seed_of(self, index: int) -> int:
         return SPLIT_SEEDS[self.split] + index
+
+    def pair_key(self, index: int, draw: int) -> tuple | None:
+        """``(cache folder, scene seed, augmentation)`` of the pair a training draw gives; None uncached."""
+        return None if self.cache is None else (self.cache.name, self.seed_of(index), self.augmentation_of(draw))
 
     def extended(self, extra: int) -> SyntheticDataset:
         """This set with ``extra`` more scenes after its own (the next seeds of its split), rendered

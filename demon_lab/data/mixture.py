@@ -31,12 +31,12 @@ def flow_order(dataset: PairDataset) -> np.ndarray:
 
 
 class MixtureDataset(torch.utils.data.Dataset):
-    """Several datasets behind one index space of ``(dataset, index, draw_seed)`` keys. ``fields``, a
-    function of a drawn sample, adds what it returns to the sample (the pair's classical priors:
-    :mod:`demon_lab.pipeline.stages.priors`)."""
+    """Several datasets behind one index space of ``(dataset, index, draw_seed)`` keys. ``fields(sample,
+    pair_key)``, a function of a drawn sample and what identifies its pair (:meth:`PairDataset.pair_key`),
+    adds what it returns to the sample (the pair's classical priors: :mod:`demon_lab.pipeline.stages.priors`)."""
 
     def __init__(self, datasets: Sequence[PairDataset],
-                 fields: Callable[[smp.Sample], Mapping[str, torch.Tensor]] | None = None):
+                 fields: Callable[[smp.Sample, tuple | None], Mapping[str, torch.Tensor]] | None = None):
         self.datasets, self.fields = list(datasets), fields
 
     def __len__(self) -> int:
@@ -44,8 +44,11 @@ class MixtureDataset(torch.utils.data.Dataset):
 
     def __getitem__(self, key: tuple[int, int, int]) -> smp.Sample:
         which, index, draw = key
-        sample = self.datasets[which][(index, draw)]
-        return sample if self.fields is None else {**sample, **self.fields(sample)}
+        dataset = self.datasets[which]
+        sample = dataset[(index, draw)]
+        if self.fields is None:
+            return sample
+        return {**sample, **self.fields(sample, getattr(dataset, "pair_key", lambda *_: None)(index, draw))}
 
 
 class MixtureSampler(torch.utils.data.Sampler):
@@ -131,6 +134,17 @@ class MixtureSampler(torch.utils.data.Sampler):
         # The full epoch even when skipping: Lightning counts a resumed epoch's batches from its
         # checkpointed position, so the epoch and the stage end together after the skipped keys.
         return self.num_samples // self.world
+
+    def fresh_scenes(self, epoch: int = 0) -> list[int]:
+        """The new scenes each source meets in ``epoch`` (0 for a source without ``fresh``): its
+        ``lengths[s]`` to ``lengths[s] + n - 1``, to render ahead of the stage."""
+        if self.fresh is None:
+            return [0] * len(self.lengths)
+        sources = np.random.default_rng([self.seed, epoch]).choice(len(self.lengths), size=self.num_samples, p=self.p)
+        if self.lead_keys and epoch == 0:
+            sources[: self.lead_keys] = self.lead_source
+        draws = np.bincount(sources, minlength=len(self.lengths))
+        return [math.floor(f * int(c)) for f, c in zip(self.fresh, draws, strict=True)]
 
     def __iter__(self):
         epoch = self.epoch

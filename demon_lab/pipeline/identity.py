@@ -53,7 +53,8 @@ normalised name). A new option that every config writes (a key of ``conf/model/d
 top-level key) adds its line here; nothing else in the keys changes."""
 
 NON_SEMANTIC = ("tracking", "force", "hydra", "cache_dir", "eval.visualize", "eval.point_clouds", "row",
-                "data.num_workers", "threads", "trainer.reuse_frozen", *(f"model.{k}" for k in EXECUTION_KEYS))
+                "data.num_workers", "threads", "trainer.reuse_frozen", "trainer.profile",
+                *(f"model.{k}" for k in EXECUTION_KEYS))
 """Config keys (and whole subtrees) that do not change what a job computes: where it logs and
 caches, how many threads and loader workers it uses, the nets' memory layout and compilation and
 whether a stage reads its frozen nets' outputs from a memo (they change floating-point rounding at

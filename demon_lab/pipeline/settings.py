@@ -252,6 +252,7 @@ class TrainerSettings(Section):
     devices: int = setting(Int(1))
     num_nodes: int = setting(Int(1))
     reuse_frozen: bool = setting(Flag())
+    profile: bool = setting(Flag())
 
     @property
     def world(self) -> int:

@@ -9,7 +9,7 @@ before the first stage trains, :func:`warm_priors` computes them for every train
 synthetic set can give (each scene under each of DeMoN's four augmentations,
 :meth:`demon_lab.data.datasets.PairDataset.training_pairs`) in parallel processes, and keeps them on
 disk beside the set's rendered scenes (``priors-<key>.pt`` in its cache folder), where every seed,
-row and stage that draws the same scenes reads them. A drawn pair carries its priors as
+row and stage that draws the same scenes reads them, by scene and augmentation. A drawn pair carries its priors as
 ``prior_flow`` (2, h, w) and, with ``dm1_prior=ransac_prior``, ``prior_motion`` (6,)
 (:class:`PriorTable`), and the stage modules read them instead of computing them. A pair not computed
 ahead (fresh 2-D layers, DeMoN's HDF5 files) gets its priors at its first draw, in the loader, kept in
@@ -40,8 +40,8 @@ from demon_lab.pipeline.identity import digest
 
 log = logging.getLogger(__name__)
 
-FIELDS = ("prior_flow", "prior_motion")
-"""What a drawn pair carries of its priors (:class:`PriorTable`)."""
+FILE_VERSION = 1
+"""The layout of a priors file (``{scene seed: {augmentation: priors}}``), part of its name."""
 
 
 @dataclass(frozen=True)
@@ -66,7 +66,8 @@ class PairPriors:
         """What the priors' values depend on besides the pair: the settings and OpenCV's version."""
         import cv2
 
-        settings = {"flow": self.flow, "upsample": classical.DIS_UPSAMPLE[self.flow], "dis": classical.DIS_SETTINGS,
+        settings = {"file": FILE_VERSION, "flow": self.flow, "upsample": classical.DIS_UPSAMPLE[self.flow],
+                    "dis": classical.DIS_SETTINGS,
                     "opencv": cv2.__version__}
         if self.motion:
             settings["motion"] = classical.RANSAC_SETTINGS["ransac_prior"]
@@ -89,7 +90,8 @@ class PairPriors:
 
 
 def pair_digest(sample: Mapping[str, torch.Tensor]) -> bytes:
-    """What identifies a training pair: its two images and its intrinsics, byte for byte."""
+    """What identifies a training pair that its set cannot name (:meth:`PairDataset.pair_key`): its two
+    images and its intrinsics, byte for byte."""
     h = hashlib.blake2b(digest_size=16)
     for key in ("image1", "image2", "intrinsics"):
         x = sample[key]
@@ -99,27 +101,29 @@ def pair_digest(sample: Mapping[str, torch.Tensor]) -> bytes:
 
 
 class PriorTable:
-    """``table(sample)``: the priors of a drawn pair (:class:`PairPriors`), read from the pairs computed
-    ahead (``known``, by :func:`pair_digest`) or computed at the pair's first draw and kept (up to
-    ``max_misses`` such pairs, the least recently drawn dropped first: fresh 2-D layers are new at
-    every draw)."""
+    """``table(sample, pair_key)``: the priors of a drawn pair (:class:`PairPriors`), read from the pairs
+    computed ahead (``known``, by their sets' pair keys: :meth:`PairDataset.pair_key`) or computed at
+    the pair's first draw and kept, by its key or, where its set names none, by its content
+    (:func:`pair_digest`); up to ``max_misses`` such pairs, the least recently drawn dropped first
+    (fresh 2-D layers are new at every draw)."""
 
-    def __init__(self, priors: PairPriors, known: Mapping[bytes, dict[str, torch.Tensor]] | None = None,
+    def __init__(self, priors: PairPriors, known: Mapping[tuple, dict[str, torch.Tensor]] | None = None,
                  max_misses: int = 20_000):
         self.priors, self.known = priors, dict(known or {})
-        self.misses: OrderedDict[bytes, dict[str, torch.Tensor]] = OrderedDict()
+        self.misses: OrderedDict[tuple | bytes, dict[str, torch.Tensor]] = OrderedDict()
         self.max_misses = int(max_misses)
 
-    def __call__(self, sample: Mapping[str, torch.Tensor]) -> dict[str, torch.Tensor]:
-        key = pair_digest(sample)
-        found = self.known.get(key)
+    def __call__(self, sample: Mapping[str, torch.Tensor], pair_key: tuple | None = None) -> dict[str, torch.Tensor]:
+        found = None if pair_key is None else self.known.get(pair_key)
+        if found is not None:
+            return found
+        key = pair_digest(sample) if pair_key is None else pair_key
+        found = self.misses.get(key)
         if found is None:
-            found = self.misses.get(key)
-            if found is None:
-                found = self.misses[key] = self.priors.compute([sample])[0]
-                while len(self.misses) > self.max_misses:
-                    self.misses.popitem(last=False)
-            self.misses.move_to_end(key)
+            found = self.misses[key] = self.priors.compute([sample])[0]
+            while len(self.misses) > self.max_misses:
+                self.misses.popitem(last=False)
+        self.misses.move_to_end(key)
         return found
 
 
@@ -127,14 +131,13 @@ def _path(dataset: SyntheticDataset, priors: PairPriors) -> Path:
     return dataset.cache / f"priors-{priors.key}.pt"
 
 
-def _compute_scenes(args: tuple[SyntheticDataset, PairPriors, list[int]]) -> dict[int, list]:
-    """``{seed: [(pair digest, priors) per training pair of the scene]}`` for the scenes ``indices``."""
+def _compute_scenes(args: tuple[SyntheticDataset, PairPriors, list[int]]) -> dict[int, dict[int, dict]]:
+    """``{seed: {augmentation: priors}}`` for the scenes ``indices`` (:meth:`PairDataset.training_pairs`)."""
     dataset, priors, indices = args
     out = {}
     for index in indices:
         pairs = dataset.training_pairs(index)
-        out[dataset.seed_of(index)] = [(pair_digest(p), fields) for p, fields in zip(pairs, priors.compute(pairs),
-                                                                                     strict=True)]
+        out[dataset.seed_of(index)] = dict(zip(pairs, priors.compute(list(pairs.values())), strict=True))
     return out
 
 
@@ -153,7 +156,7 @@ def warm_priors(datasets: Sequence[PairDataset], priors: PairPriors, processes: 
     write at once). Returns the table a stage's loader reads (:class:`PriorTable`) and the number of
     scenes computed."""
     sets = [d for d in datasets if isinstance(d, SyntheticDataset) and d.cache is not None]
-    saved: list[dict[int, list]] = []
+    saved: list[dict[int, dict[int, dict]]] = []
     jobs = []
     for which, dataset in enumerate(sets):
         path, entries = _path(dataset, priors), {}
@@ -180,8 +183,10 @@ def warm_priors(datasets: Sequence[PairDataset], priors: PairPriors, processes: 
             tmp = path.with_suffix(f".tmp{os.getpid()}")
             torch.save(saved[which], tmp)
             os.replace(tmp, path)
-    known: dict[bytes, dict[str, torch.Tensor]] = {}
+    known: dict[tuple, dict[str, torch.Tensor]] = {}
     for dataset, entries in zip(sets, saved, strict=True):
         for i in range(len(dataset)):
-            known.update(entries[dataset.seed_of(i)])
+            seed = dataset.seed_of(i)
+            known.update({(dataset.cache.name, seed, augmentation): fields
+                          for augmentation, fields in entries[seed].items()})
     return PriorTable(priors, known), sum(len(job[2]) for _, job in jobs)

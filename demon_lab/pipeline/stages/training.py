@@ -11,8 +11,9 @@ from __future__ import annotations
 import contextlib
 import gc
 import logging
+import re
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 
 import lightning as L
@@ -104,11 +105,13 @@ def train_stage(cfg: DictConfig, chain: DeMoN, stage: StageDir, logger: L.pytorc
         if spec.keep_best:
             keep = KeepBest(scorer, spec.best_metric, spec.keep_best, stage.path / "best.pt", spec.trained_nets())
             callbacks.append(keep)
+    profiler = L.pytorch.profilers.SimpleProfiler() if job.trainer.profile else None
     trainer = _trainer(job, spec.steps, logger=logger if logger is not None else False, callbacks=callbacks,
-                       enable_progress_bar=progress)
+                       enable_progress_bar=progress, profiler=profiler)
     if resume is not None:
         log.info("resuming stage %s from step %d (%s)", stage.name, start_step, resume)
     loader = datamodule.train_dataloader()  # (an easy_first curriculum orders its sources here: not timed)
+    rendered, render_seconds = _render_fresh_scenes(datamodule)
     start = time.perf_counter()
     try:
         trainer.fit(module, train_dataloaders=loader, ckpt_path=resume)
@@ -125,6 +128,10 @@ def train_stage(cfg: DictConfig, chain: DeMoN, stage: StageDir, logger: L.pytorc
     steps_done = spec.steps - start_step
     figures = {"seconds": seconds, "steps_per_second": steps_done / max(seconds, 1e-9), "resumed_from_step": start_step,
                **{f"final/{k}": v for k, v in module.last_terms.items()}, **kept}
+    if rendered:
+        figures.update(fresh_scenes_rendered=rendered, fresh_scenes_seconds=render_seconds)
+    if profiler is not None:
+        figures.update(loop_parts(profiler.recorded_durations, seconds))
     if module.memo is not None and module.memo.hits + module.memo.misses:
         figures["reuse_frozen_hits"] = module.memo.hits / (module.memo.hits + module.memo.misses)
     # The trainer and the module refer to each other: collect them (and the datasets' in-memory
@@ -132,6 +139,44 @@ def train_stage(cfg: DictConfig, chain: DeMoN, stage: StageDir, logger: L.pytorc
     del trainer, module, datamodule
     gc.collect()
     return _logged(cfg, logger, figures, spec.steps)
+
+
+def _render_fresh_scenes(datamodule) -> tuple[int, float]:
+    """Render the fresh scenes a stage's draws will meet (``fresh_scenes``) into the scene cache before
+    it trains, in one process per core, where the loader would render each at its first draw on the
+    cores the stage trains on. They are the next scenes of each set's split, the same for every seed
+    and row, so a scene is rendered once per cache. Returns the number rendered and the seconds."""
+    from demon_lab.data.datasets import warm_cache
+
+    start = time.perf_counter()
+    rendered = warm_cache(datamodule.fresh_scenes())
+    if rendered:
+        log.info("rendered %d fresh scenes into the cache in %.0f s", rendered, time.perf_counter() - start)
+    return rendered, time.perf_counter() - start
+
+
+LOOP_PARTS = 8
+"""How many parts of a profiled stage's loop it logs (``trainer.profile``): the largest by time."""
+
+
+def loop_parts(durations: Mapping[str, Sequence[float]], seconds: float) -> dict[str, float]:
+    """The largest parts of a stage's loop as Lightning's SimpleProfiler timed them (``durations``: the
+    seconds of each call of each action), as figures ``profile/<part>_seconds``, an action's name made a
+    metric name (``[Callback]KeepBest.on_train_batch_end`` -> ``callback.KeepBest.on_train_batch_end``);
+    and ``profile/outside_seconds``: the stage's time (``seconds``) outside its batches
+    (``run_training_batch``: forward, backward, optimiser) and its loader (``train_dataloader_next``)."""
+    totals = {name: float(sum(times)) for name, times in durations.items() if times and name != "run_training_epoch"}
+
+    def metric(name: str) -> str:
+        name = re.sub(r"^\[(\w+)\]\.?", lambda m: m[1].strip("_").lower() + ".", name)
+        return re.sub(r"[^A-Za-z0-9_.-]+", ".", name).strip(".")
+
+    largest = sorted(totals, key=totals.__getitem__, reverse=True)[:LOOP_PARTS]
+    figures = {f"profile/{metric(name)}_seconds": totals[name] for name in largest}
+    inside = totals.get("run_training_batch", 0.0) + sum(v for n, v in totals.items()
+                                                         if n.endswith("train_dataloader_next"))
+    figures["profile/outside_seconds"] = max(seconds - inside, 0.0)
+    return figures
 
 
 def _logged(cfg: DictConfig, logger, figures: dict[str, float], step: int) -> dict[str, float]:
