@@ -9,7 +9,7 @@ from conftest import table_alignment, table_rows
 
 from demon_lab.core import geometry as geo
 from demon_lab.data import throughput
-from demon_lab.tools import bench
+from demon_lab.tools import bench, bench_train
 
 
 def test_write_section_replaces_only_its_own_section(tmp_path):
@@ -37,49 +37,81 @@ def test_geometry_benchmark_reports_every_op_with_numbers(tmp_path):
 
 
 def test_the_benchmark_tables_hold_their_cells_as_the_hand_written_tables_did():
-    """The train section's job table and the data section's HDF5 table from known rates: the cells
-    and the column alignment (numbers right, the yes/no column centred) of the tables the benchmark
-    wrote by hand before pandas wrote them."""
+    """The train section's design table and the data section's HDF5 table from known rates: the cells
+    and the column alignment (numbers right, the yes/no column centred)."""
     from demon_lab.tools import bench_data
 
-    job = bench.job_table({"flow1": 2.5, "dm1": 1.0}, {"flow1": 5.0, "dm1": 4.0})
-    assert table_rows(job) == table_rows("\n".join([
-        "| stage | job steps/s | step alone, steps/s | job / step |",
-        "| flow1 | 2.50 | 5.00 | 50.0% |",
-        "| dm1 | 1.00 | 4.00 | 25.0% |"]))
-    assert table_alignment(job) == [["l", "r", "r", "r"]]  # (was |---|---:|---:|---:|)
+    bare = {"profile": {"flow1": {"rate": 20.0, "flops": 50e9, "top": [("aten::conv", 0.4), ("aten::mul", 0.1)]},
+                        "dm1": {"rate": 10.0, "flops": 25e9, "top": []}}}
+    parts = {"trainingepochloop.train_dataloader_next": 0.05, "callback.StageValidation.on_train_batch_end": 0.02,
+             "outside": 0.01, "callback.KeepBest.on_train_batch_end": 0.0}
+    loop = {"profile": {"flow1": {"rate": 18.0, "parts": parts}}}
+    table = bench_train.design_table(bare, loop, peak=500e9)
+    assert table_rows(table) == [
+        ["design", "stage", "bare step, steps/s", "of matmul", "job's loop, steps/s", "loop / step",
+         "the step's largest self times", "the loop beside its batches"],
+        ["profile", "flow1", "20.00", "10.0%", "18.00", "90.0%", "aten::conv 40%, aten::mul 10%",
+         "loader 5.0%, StageValidation 2.0%, rest 1.0%"],
+        ["profile", "dm1", "10.00", "5.0%", "", "", "", ""]]
+    assert table_alignment(table) == [["l", "l", "r", "r", "r", "r", "l", "l"]]
     h5 = bench_data.h5_table({0: 320.0, 2: 1280.0}, batch=32, step=5.0)
     assert table_rows(h5) == [["loader workers", "samples/s", "batches/s", "steps/s fed with 4x headroom",
                                "4x the step"],
                               ["0", "320", "10.00", "2.50", "no"], ["2", "1280", "40.00", "10.00", "yes"]]
     assert table_alignment(h5) == [["r", "r", "r", "r", "c"]]  # (was |---:|---:|---:|---:|:---:|)
-    assert len(job.splitlines()) == 4 and all(line.startswith("|") for line in job.splitlines())  # (as --docs finds it)
 
 
-def test_job_rates_reads_each_stage_rate_from_the_job_it_runs(monkeypatch):
-    """Each stage's ``stage/NAME/steps_per_second`` as the job's run logged it, in the stages' order,
-    from the store the job was pointed at (the job here: a stand-in that logs known rates)."""
+def test_loop_rates_read_each_stages_rate_and_loop_parts_from_the_job_it_runs(monkeypatch):
+    """Each stage's ``stage/NAME/steps_per_second`` as the job's run logged it, and the parts of its loop
+    beside its batches as shares of the stage's time (the job here: a stand-in that logs known figures)."""
     import subprocess
 
     from demon_lab.pipeline.tracking import Tracker
 
     real = subprocess.run
+    commands = []
 
     def job(cmd, **kwargs):
         if "demon_lab" not in cmd:  # (what else runs a process meanwhile: MLflow's git lookups)
             return real(cmd, **kwargs)
+        commands.append(cmd)
         uri = next(a.split("=", 1)[1] for a in cmd if a.startswith("tracking.uri="))
         artifacts = next(a.split("=", 1)[1] for a in cmd if a.startswith("tracking.artifact_dir="))
         tracker = Tracker(uri, "default", artifacts)
         run = tracker.start("job", {})
-        tracker.log_metrics(run, {"stage/flow1/steps_per_second": 3.5, "stage/dm1/steps_per_second": 2.25,
-                                  "stage/flow1/seconds": 4.0})
+        tracker.log_metrics(run, {"stage/flow1/steps_per_second": 3.5, "stage/flow1/seconds": 4.0,
+                                  "stage/flow1/profile/trainingepochloop.train_dataloader_next_seconds": 0.4,
+                                  "stage/flow1/profile/run_training_batch_seconds": 3.0,
+                                  "stage/flow1/profile/outside_seconds": 0.2,
+                                  "stage/dm1/steps_per_second": 2.25, "stage/dm1/seconds": 2.0})
         tracker.finish(run, "FINISHED")
         return subprocess.CompletedProcess(cmd, 0)
 
     monkeypatch.setattr(subprocess, "run", job)
-    rates = bench.job_rates(("python", "-m", "demon_lab", "scale=smoke"), ("dm1", "flow1"))
-    assert list(rates.items()) == [("dm1", 2.25), ("flow1", 3.5)]
+    rates = bench_train.loop_rates(("design=learned",))
+    assert rates == {"flow1": {"rate": 3.5, "parts": {"trainingepochloop.train_dataloader_next": 0.1, "outside": 0.05}},
+                     "dm1": {"rate": 2.25, "parts": {}}}
+    (cmd,) = commands
+    assert "design=learned" in cmd and "trainer.profile=true" in cmd and "scale.steps.flow1=1000" in cmd
+
+
+def test_a_designs_bare_steps_are_its_stages_as_the_job_builds_them(tmp_path):
+    """bare_steps times every scheduled stage of a design (here the profile at the smoke scale, with its
+    priors in the batch) and names its largest costs; the profile's flow1 step reads the batch's priors."""
+    from demon_lab.tools.bench_train import bare_steps, training_batch
+
+    overrides = ["scale=smoke", f"cache_dir={tmp_path}", "model.flow1_prior=dis", "model.dm1_prior=ransac_prior"]
+    steps = bare_steps(overrides, repeats=1, peak=1e12)
+    assert list(steps) == ["flow1", "dm1", "flow2", "dm2", "iterative", "refine"]
+    for figures in steps.values():
+        assert figures["rate"] > 0 and figures["flops"] > 0
+        assert len(figures["top"]) == bench_train.TOP and all(0 < share <= 1 for _, share in figures["top"])
+        assert sum(share for _, share in figures["top"]) <= 1
+    cfg = bench_train._compose(overrides)
+    from demon_lab.pipeline.stages.schedule import build_chain
+
+    batch = training_batch(cfg, build_chain(cfg), 2)
+    assert batch["prior_flow"].shape == (2, 2, 16, 16) and batch["prior_motion"].shape == (2, 6)
 
 
 def _clock(monkeypatch):

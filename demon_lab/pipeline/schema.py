@@ -112,8 +112,8 @@ class StageSpec:
     easy_first: tuple[float, float] | None = None
     """A curriculum: the easiest fraction of samples first, widening to all (None: none)."""
     fresh_scenes: float = 0.0
-    """New synthetic scenes per training draw of a synthetic source, rendered by the data loader's
-    workers as training goes (0: the source's fixed set, as DeMoN's fixed training files)."""
+    """New synthetic scenes per training draw of a synthetic source, rendered into the scene cache
+    before the stage trains (0: the source's fixed set, as DeMoN's fixed training files)."""
     keep_best: int = 0
     """Score the held-apart sets (``data.val``) every this many steps and at the end, and keep the
     trained nets of the best score (0: the last step's nets, as DeMoN)."""

@@ -7,9 +7,8 @@ run (a geometry op against its OpenCV counterpart). Sections:
 * ``geometry``: the geometry layers at 256x192, batch 8, float32, on the CPU.
 * ``data``: synthetic pairs per second, rendered (one core, worker processes) and from the cache; DeMoN's
   HDF5 files decoded on the training path per loader worker count, at 256x192 and batch 32.
-* ``train``: training steps/s per stage at the cpu scale, FLOP/s against matmul, channels-last and
-  torch.compile, inference pairs/s of the full chain, and the job's own loop (``python -m
-  demon_lab`` training flow1 and dm1) against the bare step.
+* ``train``: each stage of each design at the cpu scale, its bare step against the job's own loop, with
+  the largest costs of each (:mod:`demon_lab.tools.bench_train`).
 """
 
 from __future__ import annotations
@@ -17,8 +16,7 @@ from __future__ import annotations
 import argparse
 import datetime as dt
 import re
-import time
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -28,6 +26,7 @@ from demon_lab.core import geometry as geo
 from demon_lab.core import warping
 from demon_lab.reporting.tables import markdown_table
 from demon_lab.tools.bench_data import bench_data
+from demon_lab.tools.bench_train import bench_train
 from demon_lab.tools.benchmarking import BLOCK_S, machine_line, measure
 
 
@@ -112,205 +111,6 @@ def bench_geometry(repeats: int) -> str:
         "",
     ]
     return "\n".join(lines)
-
-
-def _matmul_flops(repeats: int) -> float:
-    a, b = torch.rand(2048, 2048), torch.rand(2048, 2048)
-    return 2 * 2048**3 / measure(lambda: a @ b, max(3, repeats // 2))
-
-
-def bench_train(repeats: int) -> str:
-    """Training steps per second per stage at the cpu scale, achieved FLOP/s against this
-    machine's float32 matmul FLOP/s, channels-last and torch.compile, inference pairs/s."""
-    import warnings
-
-    from torch.utils.data import default_collate
-    from torch.utils.flop_counter import FlopCounterMode
-
-    from demon_lab.core import losses
-    from demon_lab.data import synthetic
-    from demon_lab.data.sample import normalize_translation
-    from demon_lab.nets.chain import DeMoN
-    from demon_lab.pipeline.stages.modules import DepthMotionStage, FlowStage, IterativeStage, RefineStage
-
-    warnings.filterwarnings("ignore")
-    size, width, batch_size = (96, 128), 0.25, 8  # the cpu scale (conf/scale/cpu.yaml)
-    weights = losses.preset("released_code")
-    samples = []
-    for i in range(batch_size):
-        s = normalize_translation(synthetic.render_pair("synthetic_sun3d", 10_000 + i, size))
-        s.pop("meta", None)
-        samples.append(s)
-    batch = default_collate(samples)
-    batch.pop("id")
-    peak = _matmul_flops(repeats)
-
-    def stage_rate(make, channels_last: bool = False, compile_step: bool = False, correlation=None,
-                   flow1_prior=None):
-        chain = DeMoN("v1", width, size, correlation=correlation, flow1_prior=flow1_prior)
-        if channels_last:
-            chain = chain.to(memory_format=torch.channels_last)
-        module = make(chain)
-        module.train()
-        opt = torch.optim.Adam([p for p in module.parameters() if p.requires_grad], lr=1e-4, eps=1e-6)
-        b = {k: v.contiguous(memory_format=torch.channels_last) if channels_last and v.dim() == 4 else v
-             for k, v in batch.items()}
-
-        def step():
-            loss, _ = module.stage_loss(b, losses.ground_truth(b))
-            opt.zero_grad()
-            loss.backward()
-            opt.step()
-
-        fn = torch.compile(step) if compile_step else step
-        fn()
-        fn()
-        with FlopCounterMode(display=False) as counter:
-            step()
-        flops = counter.get_total_flops()
-        seconds = measure(fn, max(3, repeats // 4), block_s=0.125)
-        return 1 / seconds, flops / seconds
-
-    def mid_stage(module):
-        """The step as the profile trains it past its first step: the flow stages and the iterative
-        stage without their flow sig terms (``sig_start: 1``), the depth sig terms of the others on
-        (outside a Trainer the step count stays 0, where their ramps are 0 and the terms skipped)."""
-        module.ramp = lambda *args, **kwargs: 1.0
-        return module
-
-    kinds = [
-        ("flow1", lambda c: FlowStage(c, weights=weights, steps=1000, lr=1e-4, net="flow1", sig_start=1.0)),
-        ("dm1", lambda c: mid_stage(DepthMotionStage(c, weights=weights, steps=1000, lr=1e-4, net="dm1"))),
-        ("flow2", lambda c: FlowStage(c, weights=weights, steps=1000, lr=1e-4, net="flow2", sig_start=1.0)),
-        ("dm2", lambda c: mid_stage(DepthMotionStage(c, weights=weights, steps=1000, lr=1e-4, net="dm2"))),
-        ("iterative", lambda c: IterativeStage(c, weights=weights, steps=1000, lr=1e-4, queue_size=8, sig_start=1.0)),
-        ("refine", lambda c: mid_stage(RefineStage(c, weights=weights, steps=1000, lr=1e-4))),
-    ]
-    rows = []
-    for name, make in kinds:
-        rate, flops = stage_rate(make)
-        rows.append((name, "default", f"{rate:.2f}", f"{flops / 1e9:.1f}", f"{flops / peak:.1%}"))
-    correlation = lambda c: FlowStage(c, weights=weights, steps=1000, lr=1e-4, net="flow1", sig_start=1.0)  # noqa: E731
-    rate, flops = stage_rate(correlation, correlation=(8, 2))
-    rows.append(("flow1", "correlation [8, 2]", f"{rate:.2f}", f"{flops / 1e9:.1f}", f"{flops / peak:.1%}"))
-    rate, flops = stage_rate(correlation, flow1_prior="dis")  # flops: the nets' (DIS runs in OpenCV)
-    rows.append(("flow1", "DIS prior", f"{rate:.2f}", f"{flops / 1e9:.1f}", f"{flops / peak:.1%}"))
-    for label, kw in (("channels-last", {"channels_last": True}), ("torch.compile", {"compile_step": True})):
-        try:
-            rate, flops = stage_rate(kinds[0][1], **kw)
-            rows.append(("flow1", label, f"{rate:.2f}", f"{flops / 1e9:.1f}", f"{flops / peak:.1%}"))
-        except Exception as e:
-            rows.append(("flow1", label, f"failed: {type(e).__name__}", "", ""))
-    logging_share = _logging_share(kinds[0][1], batch, size, width)
-    job = job_rates(JOB_COMMAND, ("flow1", "dm1"))
-    bare = {r[0]: float(r[2]) for r in rows if r[1] == "default"}
-    chain = DeMoN("v1", 1.0, (192, 256)).eval()
-    images = torch.rand(1, 3, 192, 256) - 0.5
-    K = torch.tensor([[0.89115971, 1.18821287, 0.5, 0.5]])
-    with torch.no_grad():
-        infer = measure(lambda: chain(images, images, K, iterations=3), max(3, repeats // 4), block_s=0.25)
-    lines = [
-        "## train",
-        "",
-        f"`python -m demon_lab.bench train` — {dt.date.today().isoformat()}, {machine_line()}.",
-        f"Training steps per second of each stage at the `cpu` scale ({size[1]}x{size[0]}, width {width}, batch "
-        f"{batch_size}; iterative: 8 new + 8 queued), forward+backward+Adam. Achieved FLOP/s = FLOPs of a step "
-        "(torch.utils.flop_counter) / its time, against this machine's float32 matmul "
-        f"(2048x2048) measured in the same run: {peak / 1e9:.0f} GFLOP/s.",
-        "",
-        markdown_table(["stage", "variant", "steps/s", "GFLOP/s", "of matmul peak"], rows, "llrrr"),
-        "",
-        f"Inference of the full chain (v1, full width, 256x192, bootstrap + 3 iterations + refinement, batch 1): "
-        f"{1 / infer:.2f} pairs/s.",
-        "",
-        f"Share of training wall time spent in MLflow logging (flow1 stage, 300 steps through Lightning, "
-        f"metrics every 10 steps to a fresh SQLite store): {logging_share:.2%}.",
-        "",
-        f"The real loop: `{' '.join(JOB_COMMAND)}` ({JOB_STEPS} steps per stage, the job's data path, "
-        "validation, checkpoints and MLflow logging; an empty stage cache, the data cache as the user has it), "
-        "each stage's `stage/<name>/steps_per_second` from its MLflow run against the step above:",
-        "",
-        job_table(job, bare),
-        "",
-    ]
-    return "\n".join(lines)
-
-
-def job_table(job: Mapping[str, float], bare: Mapping[str, float]) -> str:
-    """The train section's last table: per stage, its steps/s in the job (``job``), the bare step's
-    (``bare``) and their ratio."""
-    return markdown_table(["stage", "job steps/s", "step alone, steps/s", "job / step"],
-                          [[k, f"{v:.2f}", f"{bare[k]:.2f}", f"{v / bare[k]:.1%}"] for k, v in job.items()], "lrrr")
-
-
-JOB_STEPS = 1000
-JOB_COMMAND = ("python", "-m", "demon_lab", "schedule.until=dm1", "iterations=0", f"scale.steps.flow1={JOB_STEPS}",
-               f"scale.steps.dm1={JOB_STEPS}")
-
-
-def job_rates(command: Sequence[str], stages: Sequence[str]) -> dict[str, float]:
-    """Steps/s of ``stages`` as the job trains them: ``command`` (``python -m demon_lab ...``) in a
-    subprocess with a temporary stage cache and MLflow store, each stage's
-    ``stage/<name>/steps_per_second`` read from the job's run."""
-    import subprocess
-    import sys
-    import tempfile
-
-    import mlflow
-
-    with tempfile.TemporaryDirectory() as tmp:
-        uri = f"sqlite:///{tmp}/mlflow.db"
-        cmd = [sys.executable, *command[1:], f"cache_dir={tmp}/cache", f"tracking.uri={uri}",
-               f"tracking.artifact_dir={tmp}/artifacts", f"hydra.run.dir={tmp}/out"]
-        subprocess.run(cmd, check=True, cwd=tmp, stdout=subprocess.DEVNULL)
-        client = mlflow.MlflowClient(tracking_uri=uri)
-        runs = client.search_runs([e.experiment_id for e in client.search_experiments()])
-        rates = {}
-        for run in runs:
-            for name in stages:
-                value = run.data.metrics.get(f"stage/{name}/steps_per_second")
-                if value is not None:
-                    rates[name] = value
-        return {name: rates[name] for name in stages}
-
-
-def _logging_share(make, batch, size, width, steps: int = 300) -> float:
-    """Train a stage through Lightning with the stage logger of a job (Lightning's MLFlowLogger on
-    an MLflow run); the logger's time over the whole fit's time."""
-    import tempfile
-
-    import lightning as L
-    from lightning.pytorch.loggers import MLFlowLogger
-
-    from demon_lab.nets.chain import DeMoN
-    from demon_lab.pipeline.tracking import Tracker, process_tracking_uri
-
-    class TimedLogger(MLFlowLogger):
-        seconds = 0.0
-
-        def log_metrics(self, metrics, step=None):
-            start = time.perf_counter()
-            super().log_metrics(metrics, step)
-            TimedLogger.seconds += time.perf_counter() - start
-
-    class Repeat(torch.utils.data.Dataset):
-        def __len__(self):
-            return steps
-
-        def __getitem__(self, i):
-            return {k: v[i % v.shape[0]] for k, v in batch.items()}
-
-    with tempfile.TemporaryDirectory() as tmp, process_tracking_uri():  # the logger sets it process-wide
-        tracker = Tracker(f"sqlite:///{tmp}/mlflow.db", "bench", f"{tmp}/artifacts")
-        run_id = tracker.start("bench", {})
-        logger = TimedLogger(tracking_uri=tracker.uri, run_id=run_id)
-        module = make(DeMoN("v1", width, size))
-        trainer = L.Trainer(max_steps=steps, logger=logger, log_every_n_steps=10, enable_checkpointing=False,
-                            enable_progress_bar=False, enable_model_summary=False, accelerator="cpu")
-        start = time.perf_counter()
-        trainer.fit(module, torch.utils.data.DataLoader(Repeat(), batch_size=batch["image1"].shape[0]))
-        total = time.perf_counter() - start
-        return TimedLogger.seconds / total
 
 
 SECTIONS: dict[str, Callable[[int], str]] = {"geometry": bench_geometry, "data": bench_data, "train": bench_train}

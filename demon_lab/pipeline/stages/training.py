@@ -62,6 +62,14 @@ def build_datamodule(cfg: DictConfig, job: JobSettings, batch_size: int, samples
     return DemonDataModule(train, draws, num_workers=job.data.num_workers, pin_memory=pin_memory, fields=priors)
 
 
+def stage_module(job: JobSettings, chain: DeMoN, name: str) -> modules.StageModule:
+    """The LightningModule that trains stage ``name`` of ``job``'s schedule on ``chain``."""
+    spec = job.stages[name]
+    return getattr(modules, spec.module)(chain, weights=dict(job.loss), lr_schedule=job.schedule.lr_schedule,
+                                         weight_decay=job.schedule.weight_decay, channels_last=job.model.channels_last,
+                                         reuse_frozen=job.trainer.reuse_frozen, **spec.module_options())
+
+
 def train_stage(cfg: DictConfig, chain: DeMoN, stage: StageDir, logger: L.pytorch.loggers.Logger | None,
                 progress: bool = True, priors: PriorTable | None = None) -> dict[str, float]:
     """Train one stage into ``stage`` (resuming from its last checkpoint), its pairs carrying their
@@ -74,10 +82,7 @@ def train_stage(cfg: DictConfig, chain: DeMoN, stage: StageDir, logger: L.pytorc
         log.info("stage %s: 0 steps: keeps %s as they are (from model.weights or an earlier stage)", stage.name,
                  ", ".join(spec.trained_nets()))
         return _logged(cfg, logger, {"seconds": 0.0, "steps_per_second": 0.0, "resumed_from_step": 0}, 0)
-    module = getattr(modules, spec.module)(chain, weights=dict(job.loss), lr_schedule=job.schedule.lr_schedule,
-                                           weight_decay=job.schedule.weight_decay,
-                                           channels_last=job.model.channels_last,
-                                           reuse_frozen=job.trainer.reuse_frozen, **spec.module_options())
+    module = stage_module(job, chain, stage.name)
     batch = spec.batch_size or job.data.batch_size
     resume = stage.last_checkpoint if stage.last_checkpoint.is_file() else None
     if resume is None and isinstance(spec, FlowStageSpec) and spec.restarts is not None:
