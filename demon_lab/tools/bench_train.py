@@ -108,7 +108,7 @@ def bare_steps(overrides: Sequence[str], repeats: int, peak: float) -> dict[str,
             step()
         with FlopCounterMode(display=False) as counter:
             step()
-        seconds = measure(step, max(3, repeats // 4), block_s=0.125)
+        seconds = measure(step, repeats, block_s=0.1)  # (2 s at the default effort: a shorter window was noisy)
         with torch.profiler.profile(activities=[torch.profiler.ProfilerActivity.CPU]) as prof:
             for _ in range(5):
                 step()
