@@ -48,7 +48,7 @@ def source_digest(paths: list[str] | tuple[str, ...], root: Path = PACKAGE) -> s
         h.update(path.relative_to(root).as_posix().encode() + b"\0")
         tokens = [t for t in tokenize.generate_tokens(io.StringIO(path.read_text()).readline) if t.type not in skip]
         for i, t in enumerate(tokens):
-            statement_start = i == 0 or tokens[i - 1].type in (tokenize.NEWLINE, tokenize.INDENT, tokenize.DEDENT)
+            statement_start = i == 0 or tokens[i - 1].type in layout
             alone = i + 1 < len(tokens) and tokens[i + 1].type in (tokenize.NEWLINE, tokenize.ENDMARKER)
             if t.type == tokenize.STRING and statement_start and alone:
                 continue  # a docstring (or a string standing alone as a statement): documentation
@@ -67,7 +67,7 @@ what a stage produces (its nets, losses and priors, the data it draws, the stage
 defaults: :data:`demon_lab.pipeline.identity.CODE_VERSION`); ``generator``, what renders a synthetic scene
 (:data:`demon_lab.data.synthetic.GENERATOR_VERSION`)."""
 
-RECORDED_SOURCES = {"stage": "adb360948b3903b6", "generator": "e0df05b4a4b162c8"}
+RECORDED_SOURCES = {"stage": "077edc1f5636a63f", "generator": "e0df05b4a4b162c8"}
 """:func:`source_digest` of each of :data:`SOURCES` as its version names it. An edit of that code changes
 the digest, and the fast tier (tests/test_identity.py) fails until the new digest is recorded here, with
 the version bumped where the edit changes what a stage produces (or a scene). Code whose digest is not

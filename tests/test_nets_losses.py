@@ -476,22 +476,13 @@ def test_correlation_peaks_at_the_displacement_between_the_feature_maps():
     assert correlation(features1, features2, 2, 1).shape[1] == 25
 
 
-def _correlation_by_shifts(features1, features2, max_displacement, stride):
-    """CORRELATION_VERSION 1: the channel mean of each shifted product, concatenated, differentiated by autograd."""
-    reach = (max_displacement // stride) * stride
-    height, width = features1.shape[2:]
-    padded = torch.nn.functional.pad(features2, (reach, reach, reach, reach))
-    shifts = range(-reach, reach + 1, stride)
-    return torch.cat([(features1 * padded[:, :, reach + dy: reach + dy + height, reach + dx: reach + dx + width])
-                      .mean(1, keepdim=True) for dy in shifts for dx in shifts], 1)
-
-
 @pytest.mark.parametrize("displacement", [(8, 2), (2, 1), (3, 2)], ids=["8-2", "2-1", "3-2"])
 def test_the_correlation_operation_equals_the_shifted_products_in_value_and_gradient(displacement):
     """The one-operation correlation (blocks.Correlation) is the shifted products' correlation: its forward
     pass bit for bit, its gradients within 1e-6 (float32, channels-last too), and its backward pass
     passes gradcheck in float64."""
     from demon_lab.nets.blocks import correlation
+    from demon_lab.tools.bench_train import correlation_by_shifts
 
     torch.manual_seed(5)
     f1, f2 = torch.randn(2, 6, 12, 16), torch.randn(2, 6, 12, 16)
@@ -500,7 +491,7 @@ def test_the_correlation_operation_equals_the_shifted_products_in_value_and_grad
         a, b = (x.contiguous(memory_format=layout).requires_grad_() for x in (f1, f2))
         ours = correlation(a, b, *displacement)
         ours_grads = torch.autograd.grad(ours, (a, b), grad)
-        reference = _correlation_by_shifts(a, b, *displacement)
+        reference = correlation_by_shifts(a, b, *displacement)
         reference_grads = torch.autograd.grad(reference, (a, b), grad)
         assert torch.equal(ours, reference)
         for g, r in zip(ours_grads, reference_grads, strict=True):

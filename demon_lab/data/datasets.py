@@ -107,8 +107,7 @@ class PairDataset(torch.utils.data.Dataset):
         index, draw = (key, None) if isinstance(key, int | np.integer) else key
         self._check_index(index)
         if draw is not None:
-            choice = smp.augmentation_choice(np.random.default_rng([self.seed, int(draw)])) if self.augment else None
-            return self._training_draws(int(index), [choice])[0]
+            return self._training_draws(int(index), [self._augmentation(draw)])[0]
         native = self.load(int(index))
         native.pop("meta", None)
         unknown_motion = native.pop("motion_unknown", False)
@@ -128,8 +127,12 @@ class PairDataset(torch.utils.data.Dataset):
     def augmentation_of(self, draw: int) -> int:
         """The augmentation a training draw ``draw`` applies, by number: ``2 * rotate + mirror``
         (:data:`demon_lab.data.sample.AUGMENTATIONS`), -1 for none."""
-        return _number(smp.augmentation_choice(np.random.default_rng([self.seed, int(draw)])) if self.augment
-                       else None)
+        return _number(self._augmentation(draw))
+
+    def _augmentation(self, draw: int) -> tuple[bool, bool] | None:
+        """The ``(rotate, mirror)`` choice of training draw ``draw`` (seeded by ``(seed, draw)``); None
+        where the set does not augment."""
+        return smp.augmentation_choice(np.random.default_rng([self.seed, int(draw)])) if self.augment else None
 
     def pair_key(self, index: int, draw: int) -> tuple | None:
         """What identifies the pair of the training draw ``(index, draw)`` across jobs, where a set can

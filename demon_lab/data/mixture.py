@@ -135,15 +135,20 @@ class MixtureSampler(torch.utils.data.Sampler):
         # checkpointed position, so the epoch and the stage end together after the skipped keys.
         return self.num_samples // self.world
 
+    def _sources(self, rng: np.random.Generator, epoch: int) -> np.ndarray:
+        """The source of each key of ``epoch``: the epoch's first draw of ``rng``, then the lead."""
+        sources = rng.choice(len(self.lengths), size=self.num_samples, p=self.p)
+        if self.lead_keys and epoch == 0:
+            sources[: self.lead_keys] = self.lead_source
+        return sources
+
     def fresh_scenes(self, epoch: int = 0) -> list[int]:
         """The new scenes each source meets in ``epoch`` (0 for a source without ``fresh``): its
         ``lengths[s]`` to ``lengths[s] + n - 1``, to render ahead of the stage."""
         if self.fresh is None:
             return [0] * len(self.lengths)
-        sources = np.random.default_rng([self.seed, epoch]).choice(len(self.lengths), size=self.num_samples, p=self.p)
-        if self.lead_keys and epoch == 0:
-            sources[: self.lead_keys] = self.lead_source
-        draws = np.bincount(sources, minlength=len(self.lengths))
+        draws = np.bincount(self._sources(np.random.default_rng([self.seed, epoch]), epoch),
+                            minlength=len(self.lengths))
         return [math.floor(f * int(c)) for f, c in zip(self.fresh, draws, strict=True)]
 
     def __iter__(self):
@@ -151,9 +156,7 @@ class MixtureSampler(torch.utils.data.Sampler):
         self.epoch += 1
         skip = self.skip if epoch == 0 else 0
         rng = np.random.default_rng([self.seed, epoch])
-        sources = rng.choice(len(self.lengths), size=self.num_samples, p=self.p)
-        if self.lead_keys and epoch == 0:
-            sources[: self.lead_keys] = self.lead_source
+        sources = self._sources(rng, epoch)
         step = self.batch * self.world
         drawn = [0] * len(self.lengths)  # draws of each source so far (fresh: its pool grows with them)
         for n, s in enumerate(sources):

@@ -186,25 +186,30 @@ def design_table(bare: Mapping[str, Mapping[str, dict]], loop: Mapping[str, Mapp
                            "the step's largest self times", "the loop beside its batches"], rows, "llrrrrll")
 
 
+def correlation_by_shifts(features1: torch.Tensor, features2: torch.Tensor, max_displacement: int,
+                          stride: int) -> torch.Tensor:
+    """The correlation as ``CORRELATION_VERSION`` 1 computed it: the channel mean of each shifted product,
+    concatenated, differentiated by autograd (what the operation replaced, and what tests check it against)."""
+    import torch.nn.functional as F
+
+    reach = (max_displacement // stride) * stride
+    height, width = features1.shape[2:]
+    padded = F.pad(features2, (reach, reach, reach, reach))
+    shifts = range(-reach, reach + 1, stride)
+    return torch.cat([(features1 * padded[:, :, reach + dy: reach + dy + height, reach + dx: reach + dx + width])
+                      .mean(1, keepdim=True) for dy in shifts for dx in shifts], 1)
+
+
 def correlation_rows(repeats: int) -> list[list[str]]:
     """The correlation front at the learned flow1's size (batch 8, 16 channels at 32x24, [8, 2]),
     forward and backward: the operation against the shifted products it replaced."""
-    import torch.nn.functional as F
-
     from demon_lab.nets.blocks import correlation
-
-    def shifted_products(f1, f2, max_displacement, stride):  # CORRELATION_VERSION 1
-        reach = (max_displacement // stride) * stride
-        height, width = f1.shape[2:]
-        padded = F.pad(f2, (reach, reach, reach, reach))
-        shifts = range(-reach, reach + 1, stride)
-        return torch.cat([(f1 * padded[:, :, reach + dy: reach + dy + height, reach + dx: reach + dx + width])
-                          .mean(1, keepdim=True) for dy in shifts for dx in shifts], 1)
 
     g = torch.Generator().manual_seed(0)
     f1, f2 = (torch.randn(8, 16, 24, 32, generator=g).requires_grad_() for _ in range(2))
     times = {}
-    for label, fn in (("shifted products (version 1)", shifted_products), ("one operation (version 2)", correlation)):
+    for label, fn in (("shifted products (version 1)", correlation_by_shifts),
+                      ("one operation (version 2)", correlation)):
         times[label] = measure(lambda fn=fn: fn(f1, f2, 8, 2).square().sum().backward(), max(3, repeats // 4),
                                block_s=0.05)
     base = times["shifted products (version 1)"]

@@ -2,15 +2,15 @@
 ``model.dm1_prior=ransac_prior``: the ``cpu`` profile's).
 
 flow1's DIS prior flow and the 5-point RANSAC motion ``dm1`` corrects (:mod:`demon_lab.nets.prior`)
-are functions of the image pair alone, and costly: at the ``cpu`` scale the DIS flow of a pair
-upsampled 2x takes longer than the flow net's whole training step. A stage would compute them at
+are functions of the image pair alone, and costly: computed in the step, they held the profile's
+``flow1`` loop to half its rate (reports/timing/loops_before_after.txt). A stage would compute them at
 every draw of a pair (or, with ``trainer.reuse_frozen``, at its first draw in each stage). Instead,
 before the first stage trains, :func:`warm_priors` computes them for every training pair that a
 synthetic set can give (each scene under each of DeMoN's four augmentations,
 :meth:`demon_lab.data.datasets.PairDataset.training_pairs`) in parallel processes, and keeps them on
 disk beside the set's rendered scenes (``priors-<key>.pt`` in its cache folder), where every seed,
-row and stage that draws the same scenes reads them, by scene and augmentation. A drawn pair carries its priors as
-``prior_flow`` (2, h, w) and, with ``dm1_prior=ransac_prior``, ``prior_motion`` (6,)
+row and stage that draws the same scenes reads them, by scene and augmentation. A drawn pair carries its
+priors as ``prior_flow`` (2, h, w) and, with ``dm1_prior=ransac_prior``, ``prior_motion`` (6,)
 (:class:`PriorTable`), and the stage modules read them instead of computing them. A pair not computed
 ahead (fresh 2-D layers, DeMoN's HDF5 files) gets its priors at its first draw, in the loader, kept in
 memory from then on.

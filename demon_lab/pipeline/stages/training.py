@@ -300,9 +300,10 @@ def prepare_chain(cfg: DictConfig, on_stage: Callable[[StageDir, str], L.pytorch
         if rendered:
             log.info("rendered %d synthetic training scenes into the cache in %.0f s", rendered,
                      time.perf_counter() - start)
-        if PairPriors.of(chain) is not None:
+        priors = PairPriors.of(chain)
+        if priors is not None:
             start = time.perf_counter()
-            table, computed = warm_priors(train, PairPriors.of(chain))
+            table, computed = warm_priors(train, priors)
             if computed:
                 log.info("computed the classical priors of %d training scenes' pairs into the cache in %.0f s",
                          computed, time.perf_counter() - start)
