@@ -335,10 +335,11 @@ GOLDEN = {  # the keys these configurations had before precision, channels-last 
 
 @pytest.mark.parametrize("overrides", list(GOLDEN))
 def test_float32_jobs_keep_the_keys_they_had(overrides):
-    cfg = compose_config(["cache_dir=/x", "tracking.uri=sqlite:////x/m.db", *overrides])
+    # on 2 threads (identity.NEUTRAL_THREADS: the count these keys were measured with), whatever this process has
+    cfg = compose_config(["cache_dir=/x", "tracking.uri=sqlite:////x/m.db", "threads=2", *overrides])
     assert _keys(cfg) == (GOLDEN[overrides][0], GOLDEN[overrides][1])
-    layout = compose_config(["cache_dir=/x", "tracking.uri=sqlite:////x/m.db", *overrides, "precision=32-true",
-                             "model.channels_last=true", "model.compile=true"])
+    layout = compose_config(["cache_dir=/x", "tracking.uri=sqlite:////x/m.db", "threads=2", *overrides,
+                             "precision=32-true", "model.channels_last=true", "model.compile=true"])
     assert _keys(layout) == _keys(cfg)
 
 
@@ -352,6 +353,29 @@ def test_precision_keys_only_what_runs_a_net(tmp_path):
     assert plain[0].key == bf16[0].key and plain[1].key != bf16[1].key  # flow1 trains nothing in bf16
     assert sweep_key("e", ["precision=bf16"]) == sweep_key("e", ["precision=bf16-mixed"]) \
         != sweep_key("e", ["precision=32"])
+
+
+def test_the_cpu_thread_count_keys_what_a_cpu_job_trains(tmp_path):
+    """The nets' weights depend on the CPU threads they train with: the keys hold the count, but for the
+    neutral 2; a stage of 0 steps, a method without nets, an accelerator and the sweep leave it out."""
+    from demon_lab.pipeline.identity import cpu_threads, sweep_key
+
+    frozen = smoke_overrides(tmp_path, "scale.steps.flow1=0", "trainer.accelerator=cpu")
+    one, two, four = (compose_config([*frozen, f"threads={n}"]) for n in (1, 2, 4))
+    assert [cpu_threads(c) for c in (one, two, four)] == [{"threads": 1}, {}, {"threads": 4}]
+    keys = [_keys(c) for c in (one, two, four)]
+    assert len({k[0] for k in keys}) == 3 and len({k[1][1] for k in keys}) == 3
+    assert keys[0][1][0] == keys[1][1][0] == keys[2][1][0]  # flow1 trains nothing: the same stage
+    threads = torch.get_num_threads()
+    try:
+        torch.set_num_threads(1)  # threads=null: the count the job computes with now
+        assert _keys(compose_config(frozen)) == keys[0]
+    finally:
+        torch.set_num_threads(threads)
+    base = smoke_overrides(tmp_path, "method=base_ff", "trainer.accelerator=cpu")
+    assert run_key(compose_config([*base, "threads=1"])) == run_key(compose_config([*base, "threads=2"]))
+    assert cpu_threads(compose_config([*frozen, "threads=1", "trainer.accelerator=cuda"])) == {}
+    assert sweep_key("e", ["threads=1"]) == sweep_key("e", [])
 
 
 def test_a_cluster_launch_leaves_the_device_checks_to_the_job(tmp_path):

@@ -33,7 +33,7 @@ def test_output_folders_exclude_exactly_the_non_semantic_keys_a_user_can_set():
 
 
 def test_run_key_ignores_non_semantic_keys_and_follows_semantic_ones(tmp_path):
-    base = identity.run_key(_compose())
+    base = identity.run_key(_compose("threads=1"))  # the thread count is keyed (cpu_threads): held the same here
     assert identity.run_key(_compose("threads=1", "force=true", f"cache_dir={tmp_path}", "eval.visualize=0",
                                      f"tracking.uri=sqlite:///{tmp_path}/x.db", "tracking=local_server")) == base
     assert identity.run_key(_compose("seed=1")) != base

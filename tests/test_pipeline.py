@@ -80,9 +80,10 @@ def test_smoke_pipeline_records_a_finished_run(smoke_run):
                           text=True, check=True).stdout.strip()
     assert tags["mlflow.source.name"] and tags["mlflow.source.git.commit"] == head
     assert tags["demon_lab.git_dirty"] in ("true", "false")
-    # threads=1 took effect and is not part of what the job computes (same run key without it)
+    # threads=1 took effect, and the run key holds it: the nets computed with 1 thread, not the 2 keys leave out
     assert tags["demon_lab.cpu_threads"] == "1" and run.data.params["threads"] == "1"
-    assert result["run_key"] == run_key(compose_config(smoke_overrides(tmp)))
+    assert result["run_key"] == run_key(compose_config(smoke_overrides(tmp, "threads=1")))
+    assert result["run_key"] != run_key(compose_config(smoke_overrides(tmp, "threads=2")))
     assert run.data.params["model.width"] == "0.0625" and run.data.params["iterations"] == "3"
     m = run.data.metrics
     for name in ("synthetic_scenes11", "synthetic_sun3d", "synthetic_mvs", "middlebury"):

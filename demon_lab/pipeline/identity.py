@@ -8,7 +8,8 @@ them:
   what it computes (:data:`NON_SEMANTIC`; where its scenes are cached: :func:`without_render_cache`);
   a FINISHED run with the same key is skipped.
 - stage key (:func:`stage_key`): what determines one training stage's weights (its description,
-  chained through the keys of its upstream stages: ``demon_lab.pipeline.stages.schedule.describe_stage``).
+  chained through the keys of its upstream stages: ``demon_lab.pipeline.stages.schedule.describe_stage``),
+  with the CPU threads it trains with (:func:`cpu_threads`).
 - sweep key (:func:`sweep_key`): a multirun's experiment and its result-changing overrides; the
   same sweep re-issued continues its MLflow parent run.
 
@@ -35,7 +36,7 @@ from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Any
 
-from demon_lab.core.execution import normalize_precision
+from demon_lab.core.execution import normalize_precision, resolve_accelerator
 
 CODE_VERSION = 2
 """Bump when the training code changes what a stage produces."""
@@ -56,9 +57,34 @@ NON_SEMANTIC = ("tracking", "force", "hydra", "cache_dir", "eval.visualize", "ev
                 "data.num_workers", "threads", "trainer.reuse_frozen", "trainer.profile",
                 *(f"model.{k}" for k in EXECUTION_KEYS))
 """Config keys (and whole subtrees) that do not change what a job computes: where it logs and
-caches, how many threads and loader workers it uses, the nets' memory layout and compilation and
-whether a stage reads its frozen nets' outputs from a memo (they change floating-point rounding at
-most, as the thread count does), what it draws, which report row it is."""
+caches, how many loader workers it uses, the nets' memory layout and compilation and whether a
+stage reads its frozen nets' outputs from a memo (they change floating-point rounding at most),
+what it draws, which report row it is. ``threads`` is here as a setting (its folder name, the sweep
+key); the count the nets compute with enters the stage and run keys as :func:`cpu_threads`."""
+
+
+NEUTRAL_THREADS = 2
+"""The CPU thread count that keys leave out: the count of the 2-core machine that every key before
+the thread count entered them was measured on (the GOLDEN keys keep their values)."""
+
+
+def cpu_threads(cfg) -> dict[str, int]:
+    """``{"threads": n}`` for a job whose nets compute on the CPU, with n the threads they compute with
+    (``threads``, else torch's count at this moment: the library's default, or the share a parallel
+    launcher gave the job), and ``{}`` where n is :data:`NEUTRAL_THREADS` or the nets run on an
+    accelerator. A CPU net splits its reductions across the threads, so its rounding and, after a
+    stage's steps, its weights depend on n (reports/timing/threads_stage_weights.txt: the profile's
+    dm1 after 10 steps differs by 1e-3), so the stage and run keys hold it; ``threads`` itself stays in
+    :data:`NON_SEMANTIC` (the output folder, the sweep key)."""
+    if resolve_accelerator(cfg.trainer.accelerator) != "cpu":
+        return {}
+    if cfg.threads is not None:
+        n = int(cfg.threads)
+    else:
+        import torch
+
+        n = torch.get_num_threads()
+    return {} if n == NEUTRAL_THREADS else {"threads": n}
 
 
 def without_render_cache(data: Any) -> Any:
@@ -172,6 +198,8 @@ def semantic_config(cfg) -> dict[str, Any]:
     plain["precision"] = normalize_precision(plain["precision"])
     if plain.get("method") not in ("demon", "base_mat_f"):
         del plain["precision"]  # the methods that run no net compute the same in any precision
+    else:
+        plain.update(cpu_threads(cfg))  # nor with any thread count
     return _portable(leave_out_neutral(plain))
 
 

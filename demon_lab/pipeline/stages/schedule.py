@@ -15,7 +15,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from demon_lab.core.execution import normalize_precision, prepare_nets
 from demon_lab.nets.chain import DeMoN
-from demon_lab.pipeline.identity import leave_out_neutral, model_identity, stage_key, without_render_cache
+from demon_lab.pipeline.identity import cpu_threads, leave_out_neutral, model_identity, stage_key, without_render_cache
 from demon_lab.pipeline.schema import ModelSpec, stage_spec
 from demon_lab.pipeline.stages.cache import CheckpointError, StageDir
 
@@ -48,6 +48,8 @@ def describe_stage(cfg: DictConfig, name: str, upstream: dict[str, str]) -> dict
         "upstream": dict(upstream),
         # the nets' precision where the stage trains (a stage of 0 steps keeps its nets as they are)
         **leave_out_neutral({"precision": normalize_precision(cfg.precision)} if int(spec.steps) > 0 else {}),
+        # the CPU threads it trains with (their rounding parts the weights), but for the neutral 2
+        **(cpu_threads(cfg) if int(spec.steps) > 0 else {}),
     }
 
 
