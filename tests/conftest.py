@@ -50,6 +50,17 @@ def shared_renders() -> Path:
     return Path(tempfile.gettempdir()) / f"demon_lab-tests-{os.getpid()}" / "renders"
 
 
+@pytest.fixture(autouse=True)
+def _no_scenes_in_memory():
+    """Each test starts without scenes in the process's memory (demon_lab.data.datasets.MEMORY, shared
+    by every set of one render key): a test that checks what reaches its disk cache renders it there."""
+    from demon_lab.data.datasets import MEMORY
+
+    MEMORY.clear()
+    yield
+    MEMORY.clear()
+
+
 @pytest.fixture(scope="session", autouse=True)
 def _remove_shared_renders():
     yield

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import re
 
+import pytest
 import torch
 from conftest import table_alignment, table_rows
 
@@ -45,15 +46,15 @@ def test_the_benchmark_tables_hold_their_cells_as_the_hand_written_tables_did():
                         "dm1": {"rate": 10.0, "flops": 25e9, "top": []}}}
     parts = {"trainingepochloop.train_dataloader_next": 0.05, "callback.StageValidation.on_train_batch_end": 0.02,
              "outside": 0.01, "callback.KeepBest.on_train_batch_end": 0.0}
-    loop = {"profile": {"flow1": {"rate": 18.0, "parts": parts}}}
+    loop = {"profile": {"flow1": {"rate": 18.0, "stage_rate": 16.5, "parts": parts}}}
     table = bench_train.design_table(bare, loop, peak=500e9)
     assert table_rows(table) == [
         ["design", "stage", "bare step, steps/s", "of matmul", "job's loop, steps/s", "loop / step",
-         "the step's largest self times", "the loop beside its batches"],
-        ["profile", "flow1", "20.00", "10.0%", "18.00", "90.0%", "aten::conv 40%, aten::mul 10%",
+         "whole stage, steps/s", "the step's largest self times", "the loop beside its batches"],
+        ["profile", "flow1", "20.00", "10.0%", "18.00", "90.0%", "16.50", "aten::conv 40%, aten::mul 10%",
          "loader 5.0%, StageValidation 2.0%, rest 1.0%"],
-        ["profile", "dm1", "10.00", "5.0%", "", "", "", ""]]
-    assert table_alignment(table) == [["l", "l", "r", "r", "r", "r", "l", "l"]]
+        ["profile", "dm1", "10.00", "5.0%", "", "", "", "", ""]]
+    assert table_alignment(table) == [["l", "l", "r", "r", "r", "r", "r", "l", "l"]]
     h5 = bench_data.h5_table({0: 320.0, 2: 1280.0}, batch=32, step=5.0)
     assert table_rows(h5) == [["loader workers", "samples/s", "batches/s", "steps/s fed with 4x headroom",
                                "4x the step"],
@@ -62,8 +63,9 @@ def test_the_benchmark_tables_hold_their_cells_as_the_hand_written_tables_did():
 
 
 def test_loop_rates_read_each_stages_rate_and_loop_parts_from_the_job_it_runs(monkeypatch):
-    """Each stage's ``stage/NAME/steps_per_second`` as the job's run logged it, and the parts of its loop
-    beside its batches as shares of the stage's time (the job here: a stand-in that logs known figures)."""
+    """Each stage's loop rate (``stage/NAME/loop_steps_per_second``, else its whole rate) and whole rate as the
+    job's run logged them, and the parts of its loop beside its batches as shares of the stage's time (the job
+    here: a stand-in that logs known figures)."""
     import subprocess
 
     from demon_lab.pipeline.tracking import Tracker
@@ -80,6 +82,7 @@ def test_loop_rates_read_each_stages_rate_and_loop_parts_from_the_job_it_runs(mo
         tracker = Tracker(uri, "default", artifacts)
         run = tracker.start("job", {})
         tracker.log_metrics(run, {"stage/flow1/steps_per_second": 3.5, "stage/flow1/seconds": 4.0,
+                                  "stage/flow1/loop_steps_per_second": 3.75,
                                   "stage/flow1/profile/trainingepochloop.train_dataloader_next_seconds": 0.4,
                                   "stage/flow1/profile/run_training_batch_seconds": 3.0,
                                   "stage/flow1/profile/outside_seconds": 0.2,
@@ -89,8 +92,9 @@ def test_loop_rates_read_each_stages_rate_and_loop_parts_from_the_job_it_runs(mo
 
     monkeypatch.setattr(subprocess, "run", job)
     rates = bench_train.loop_rates(("design=learned",))
-    assert rates == {"flow1": {"rate": 3.5, "parts": {"trainingepochloop.train_dataloader_next": 0.1, "outside": 0.05}},
-                     "dm1": {"rate": 2.25, "parts": {}}}
+    assert rates == {"flow1": {"rate": 3.75, "stage_rate": 3.5,
+                               "parts": {"trainingepochloop.train_dataloader_next": 0.1, "outside": 0.05}},
+                     "dm1": {"rate": 2.25, "stage_rate": 2.25, "parts": {}}}
     (cmd,) = commands
     assert "design=learned" in cmd and "trainer.profile=true" in cmd and "scale.steps.flow1=1000" in cmd
 
@@ -142,3 +146,15 @@ def test_demon_h5_pair_times_a_draw_and_an_evaluation_sample(tmp_path, monkeypat
     _clock(monkeypatch)  # 1 s per timed block of 4 pairs
     draw, evaluation = throughput.demon_h5_pair_ms(path, pairs=4, size=(64, 96))
     assert (draw, evaluation) == (250.0, 250.0)
+
+
+def test_a_stages_loop_rate_leaves_out_what_the_stage_does_once():
+    """loop_rate: batches per second from the end of the first tenth of batches to the last, so a slow
+    start (the trainer's set-up, the first batch) does not count; too few batches give no rate."""
+    from demon_lab.pipeline.stages.training import loop_rate
+
+    ends = [10.0 + 0.5 * k for k in range(40)]  # the first batch ended 10 s after the stage began
+    assert loop_rate(ends) == pytest.approx(2.0)
+    ends[-1] += 18.0  # a slow last stretch (scoring, a checkpoint) is the loop's
+    assert loop_rate(ends) == pytest.approx(1.0)
+    assert loop_rate(ends[:9]) is None

@@ -193,10 +193,9 @@ def test_augment_equals_its_flips_applied_one_by_one(rendered):
 
 
 def test_synthetic_samples_are_kept_in_memory_unchanged(tmp_path, monkeypatch):
-    import pickle
+    from demon_lab.data.datasets import MEMORY, SyntheticDataset, keep_in_memory
 
-    from demon_lab.data.datasets import SyntheticDataset
-
+    MEMORY.clear()
     ds = SyntheticDataset("synthetic_sun3d", split="test", length=3, size=(32, 32), supersample=1, cache_dir=tmp_path)
     first = ds.load(1)
     (ds.cache / f"{ds.seed_of(1)}.pt").unlink()  # the second read cannot come from the disk
@@ -206,15 +205,26 @@ def test_synthetic_samples_are_kept_in_memory_unchanged(tmp_path, monkeypatch):
     assert not (ds.cache / f"{ds.seed_of(1)}.pt").exists()
     again["image1"] = again["image1"] * 0  # nor does replacing an entry
     assert ds.load(1)["image1"].abs().sum() > 0
-    assert pickle.loads(pickle.dumps(ds))._memory == {}  # not shipped to worker processes
+    # every object of the set reads the same copy: another stage's, a grown pool's
+    for other in (SyntheticDataset("synthetic_sun3d", split="test", length=3, size=(32, 32), supersample=1,
+                                   cache_dir=tmp_path), ds.extended(2)):
+        assert torch.equal(other.load(1)["inv_depth"].nan_to_num(), first["inv_depth"].nan_to_num())
+    held = MEMORY.held(ds.memory_key)
+    assert held > 0 and keep_in_memory([ds]) == 2 and MEMORY.held(ds.memory_key) == 3 * held  # all 3 now
+    assert keep_in_memory([ds]) == 0
+    MEMORY.clear()
     small = SyntheticDataset("synthetic_sun3d", split="test", length=3, size=(32, 32), supersample=1,
                              cache_dir=tmp_path, memory_mb=0)
     small.load(0)
-    assert small._memory == {} and small._memory_bytes == 0
+    assert MEMORY.held(small.memory_key) == 0 and keep_in_memory([small]) == 0
+    budget = SyntheticDataset("synthetic_sun3d", split="test", length=3, size=(32, 32), supersample=1,
+                              cache_dir=tmp_path, memory_mb=1.5 * held / 2**20)
+    assert keep_in_memory([budget]) == 1 and MEMORY.held(budget.memory_key) == held  # the first that fit
+    MEMORY.clear()
     monkeypatch.setenv("DEMON_LAB_MEMORY_MB", "0")
     off = SyntheticDataset("synthetic_sun3d", split="test", length=3, size=(32, 32), supersample=1, cache_dir=tmp_path)
     off.load(0)
-    assert off.memory_budget == 0 and off._memory == {}
+    assert off.memory_budget == 0 and MEMORY.held(off.memory_key) == 0
 
 
 # ----------------------------------------------------------------------------- synthetic
@@ -940,6 +950,6 @@ def test_fresh_scenes_render_new_scenes_of_the_next_seeds_in_the_loaders_worker(
     assert len(batches) == 12
     cached = sorted(int(p.stem) for p in scenes.cache.glob("*.pt"))
     assert cached == sorted(set(drawn))  # every drawn scene, the new ones too, rendered once and cached
-    longer = SyntheticDataset("synthetic_sun3d", length=8, size=(64, 64), cache_dir=False)
+    longer = SyntheticDataset("synthetic_sun3d", length=8, size=(64, 64), cache_dir=False, memory_mb=0)  # rendered
     again = scenes.extended(5)
     assert len(again) == 8 and torch.equal(again.load(7)["image1"], longer.load(7)["image1"])

@@ -35,6 +35,42 @@ SPLIT_SEEDS = {"train": 0, "val": 10_000_000, "test": 20_000_000}
 DEFAULT_CACHE = cache_root() / "data"
 
 
+class SceneMemory:
+    """Rendered scenes kept in this process's memory, by their set (its render key) and their seed: every
+    dataset object of one set (each stage's, a fresh pool grown from it, the next stage's) reads the
+    same copy, so a job loads a scene from the disk cache once, not once per stage; a loader worker
+    started by fork sees the scenes kept before it started. At most ``budget`` bytes per set (the
+    first ones loaded). The copies are never modified (every transform returns new tensors)."""
+
+    def __init__(self):
+        self.scenes: dict[tuple[str, int], smp.Sample] = {}
+        self.used: dict[str, int] = {}
+
+    def get(self, key: str, seed: int) -> smp.Sample | None:
+        kept = self.scenes.get((key, seed))
+        return None if kept is None else dict(kept)
+
+    def keep(self, key: str, seed: int, sample: smp.Sample, budget: int) -> None:
+        if (key, seed) in self.scenes:
+            return
+        size = sum(v.nbytes for v in sample.values() if isinstance(v, torch.Tensor))
+        if self.used.get(key, 0) + size <= budget:
+            self.scenes[(key, seed)] = dict(sample)
+            self.used[key] = self.used.get(key, 0) + size
+
+    def held(self, key: str) -> int:
+        """The bytes kept of the set ``key`` (:attr:`SyntheticDataset.memory_key`)."""
+        return self.used.get(key, 0)
+
+    def clear(self) -> None:
+        self.scenes.clear()
+        self.used.clear()
+
+
+MEMORY = SceneMemory()
+"""This process's :class:`SceneMemory` (a process started by spawn begins with an empty one)."""
+
+
 TRAINING_KEYS = ("id", "image1", "image2", "inv_depth", "motion", "intrinsics", "intrinsics2", "baseline")
 """The fields of a training draw: what the training stages (demon_lab.pipeline.stages) and their loss targets
 (demon_lab.core.losses.GroundTruth) read."""
@@ -184,12 +220,11 @@ class SyntheticDataset(PairDataset):
     Samples are cached on disk (``cache_dir``, default ``$DEMON_LAB_CACHE`` or
     ``~/.cache/demon_lab``) under a key hashing the preset, size, supersampling and generator
     version, and reused; ``cache_dir=False`` renders every time. Loaded samples are also kept in
-    memory, up to ``memory_mb`` per dataset and data-loader worker (default: ``$DEMON_LAB_MEMORY_MB``
-    or 1024; 0 turns it off): served from memory, the training path is faster than from the disk
-    cache (``python -m demon_lab.bench data``; the rates: docs/data.md, "The disk cache and the
-    in-memory copy"). The memory copy is never modified (every
-    transform returns new tensors) and is not pickled into worker processes. It changes no
-    result, so it is not part of any cache or run key.
+    the process's memory (:data:`MEMORY`, shared by every object of the set), up to ``memory_mb`` per
+    set (default: ``$DEMON_LAB_MEMORY_MB`` or 1024; 0 turns it off): served from memory, the training
+    path is faster than from the disk cache (``python -m demon_lab.bench data``; the rates:
+    docs/data.md, "The disk cache and the in-memory copy"). The memory copy is never modified (every
+    transform returns new tensors). It changes no result, so it is not part of any cache or run key.
     """
 
     perfect_gt = "yes"
@@ -221,13 +256,6 @@ class SyntheticDataset(PairDataset):
         if memory_mb is None:
             memory_mb = float(os.environ.get("DEMON_LAB_MEMORY_MB", 1024))
         self.memory_budget = int(memory_mb * 2**20)
-        self._memory: dict[int, smp.Sample] = {}
-        self._memory_bytes = 0
-
-    def __getstate__(self) -> dict[str, Any]:
-        state = dict(self.__dict__)
-        state["_memory"], state["_memory_bytes"] = {}, 0
-        return state
 
     def __len__(self) -> int:
         return self.length
@@ -245,19 +273,22 @@ class SyntheticDataset(PairDataset):
         :class:`demon_lab.data.mixture.MixtureSampler` grows into. Its own scenes, and so the cache
         entries of the set, are unchanged."""
         grown = copy.copy(self)
-        grown.length, grown._memory, grown._memory_bytes = self.length + int(extra), {}, 0
+        grown.length = self.length + int(extra)
         return grown
 
     def load(self, index: int) -> smp.Sample:
-        kept = self._memory.get(index)
+        kept = MEMORY.get(self.memory_key, self.seed_of(index)) if self.memory_budget else None
         if kept is not None:
-            return dict(kept)
+            return kept
         sample = self._load(index)
-        size = sum(v.nbytes for v in sample.values() if isinstance(v, torch.Tensor))
-        if self._memory_bytes + size <= self.memory_budget:
-            self._memory[index] = dict(sample)
-            self._memory_bytes += size
+        if self.memory_budget:
+            MEMORY.keep(self.memory_key, self.seed_of(index), sample, self.memory_budget)
         return sample
+
+    @property
+    def memory_key(self) -> str:
+        """What names the set's scenes in :data:`MEMORY`: its preset and render key (its cache folder's name)."""
+        return f"{self.name}-{self.cache_key}"
 
     def _load(self, index: int) -> smp.Sample:
         seed = self.seed_of(index)
@@ -280,8 +311,24 @@ class SyntheticDataset(PairDataset):
 def _render_into_cache(args: tuple[SyntheticDataset, list[int]]) -> int:
     dataset, indices = args
     for index in indices:
-        dataset.load(index)
+        dataset._load(index)  # (into the disk cache; the rendering process keeps none in memory)
     return len(indices)
+
+
+def keep_in_memory(datasets: Sequence[PairDataset]) -> int:
+    """Load every scene of the synthetic ``datasets`` (from the disk cache) into this process's
+    :data:`MEMORY`, up to each set's budget, before training draws them: a job's stages, and the
+    loader workers they fork, then read each scene from memory. Returns the number loaded."""
+    loaded = 0
+    for d in datasets:
+        if isinstance(d, SyntheticDataset) and d.memory_budget:
+            for index in range(len(d)):
+                if MEMORY.get(d.memory_key, d.seed_of(index)) is None:
+                    d.load(index)
+                    if MEMORY.get(d.memory_key, d.seed_of(index)) is None:
+                        break  # the set's budget is full
+                    loaded += 1
+    return loaded
 
 
 def warm_cache(datasets: Sequence[PairDataset], processes: int | None = None) -> int:

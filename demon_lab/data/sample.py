@@ -288,8 +288,7 @@ def rotate_180(sample: Sample, normals: bool = True) -> Sample:
     X' = Rz X with Rz = diag(-1, -1, 1): R' = Rz R Rz, i.e. r' = (-rx, -ry, rz); t' = (-tx, -ty, tz);
     cx -> 1 - cx, cy -> 1 - cy; maps flipped on both axes; flow x, y negated.
     """
-    sign = torch.tensor([-1.0, -1.0, 1.0])
-    return _flip_sample(sample, dims=(-2, -1), sign=sign, principal=(2, 3), normals=normals)
+    return _flip_sample(sample, (-2, -1), [ROTATE], normals)
 
 
 def mirror(sample: Sample, normals: bool = True) -> Sample:
@@ -298,29 +297,37 @@ def mirror(sample: Sample, normals: bool = True) -> Sample:
     R' = M R M, i.e. r' = (rx, -ry, -rz) (a reflection flips the rotation sense); t' = (-tx, ty, tz);
     cx -> 1 - cx; maps flipped left-right; flow x negated.
     """
-    sign = torch.tensor([-1.0, 1.0, 1.0])
-    return _flip_sample(sample, dims=(-1,), sign=sign, principal=(2,), normals=normals)
+    return _flip_sample(sample, (-1,), [MIRROR], normals)
 
 
-def _flip_sample(sample: Sample, dims: tuple[int, ...], sign: torch.Tensor,
-                 principal: tuple[int, ...], normals: bool = True) -> Sample:
+ROTATE = ((-1.0, -1.0, 1.0), (2, 3))
+"""The 180-degree turn's signs of the motion's axes and the intrinsics it mirrors (cx, cy): :func:`rotate_180`."""
+MIRROR = ((-1.0, 1.0, 1.0), (2,))
+"""The mirror's signs and mirrored intrinsics (cx): :func:`mirror`."""
+
+
+def _flip_sample(sample: Sample, dims: tuple[int, ...], cameras: list[tuple], normals: bool = True) -> Sample:
+    """``sample``'s maps flipped along ``dims`` once, and its flow, motion and intrinsics changed by each
+    of ``cameras`` (:data:`ROTATE`, :data:`MIRROR`) in turn: the maps of a turn then a mirror are one
+    vertical flip, each value moved exactly, while the cameras' arithmetic stays the same steps."""
     out = dict(sample)
     for key in MAP_KEYS:
         if key in sample:  # a training draw carries only what the losses read
             out[key] = sample[key].flip(dims)
-    if "flow" in out:
-        out["flow"] = out["flow"] * sign[:2, None, None]
-    det = float(sign.prod())  # -1 for a reflection
-    r, t = sample["motion"][:3], sample["motion"][3:]
-    out["motion"] = torch.cat([det * sign * r, sign * t])
-    for key in ("intrinsics", "intrinsics2"):
-        k = sample[key].clone()
-        for i in principal:
-            k[i] = 1 - k[i]
-        out[key] = k
+    for signs, principal in cameras:
+        sign = torch.tensor(signs)
+        if "flow" in out:
+            out["flow"] = out["flow"] * sign[:2, None, None]
+        det = float(sign.prod())  # -1 for a reflection
+        r, t = out["motion"][:3], out["motion"][3:]
+        out["motion"] = torch.cat([det * sign * r, sign * t])
+        for key in ("intrinsics", "intrinsics2"):
+            k = out[key].clone()
+            for i in principal:
+                k[i] = 1 - k[i]
+            out[key] = k
     # Like DeMoN, GT normals come from the augmented depth: its pixel stencil (right/down and
     # left/up neighbours) is not mirror-symmetric at creases, so flipping the old map would differ.
-    # normals=False leaves them to the caller (a further flip that recomputes them anyway).
     if normals:
         out["normals"] = geo.normals_from_depth(out["inv_depth"][None], out["intrinsics"][None])[0]
     return out
@@ -343,10 +350,9 @@ def augmented(sample: Sample, rotate: bool, flip: bool, normals: bool = True) ->
     recomputing it from the augmented depth: the training losses derive their normals from the depth
     pyramid (:class:`demon_lab.core.losses.GroundTruth`), so training skips a map nobody reads (its
     cost: docs/notes/2026-11-cpu-profile.md, "Time and memory")."""
-    if rotate:
-        sample = rotate_180(sample, normals=normals and not flip)  # the mirror recomputes them
-    if flip:
-        sample = mirror(sample, normals=normals)
+    if rotate or flip:
+        dims = (-2,) if rotate and flip else (-2, -1) if rotate else (-1,)
+        sample = _flip_sample(sample, dims, [ROTATE] * rotate + [MIRROR] * flip, normals)
     if not normals:
         sample = {k: v for k, v in sample.items() if k != "normals"}
     return sample

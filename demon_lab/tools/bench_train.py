@@ -3,12 +3,14 @@ design at the ``cpu`` scale (the profile, DeMoN's design, the learned design) an
 
 * **The bare step**: the stage's own module, built as the job builds it (its options, the design's
   nets), on a batch of the design's training pairs (each carrying its classical priors where the
-  design has them, as the job's draws do), forward, backward and Adam, without the memo of
-  ``trainer.reuse_frozen``: what a step computes, nothing else. Its FLOP/s against the machine's float32
-  matmul, and its largest costs by self time (``torch.profiler``).
+  design has them, as the job's draws do), forward, backward, the gradients clipped and Adam with its
+  learning-rate schedule, without the memo of ``trainer.reuse_frozen``: what a step computes, nothing
+  else. Its FLOP/s against the machine's float32 matmul, and its largest costs by self time (``torch.profiler``).
 * **The job's loop**: ``python -m demon_lab [design] scale.steps.NAME=N ... trainer.profile=true`` in a
-  temporary stage cache and MLflow store, the scene cache as the user has it: each stage's
-  ``stage/NAME/steps_per_second`` against the bare step, and the largest parts of the loop beside the
+  temporary stage cache and MLflow store, the scene cache as the user has it: each stage's loop once
+  running (``stage/NAME/loop_steps_per_second``: past its first tenth of batches, with the loading,
+  scoring, checkpoints and logging between them) against the bare step, the whole stage's rate
+  (``steps_per_second``: its set-up and end too), and the largest parts of the loop beside the
   batches as Lightning's SimpleProfiler timed them (``stage/NAME/profile/...``: the loader, the
   callbacks that score the held-apart sets, keep the best nets and write checkpoints, the rest).
 * The correlation front's operation against the shifted products it replaced, channels-last and
@@ -101,9 +103,8 @@ def bare_steps(overrides: Sequence[str], repeats: int, peak: float) -> dict[str,
         mid_stage(module)
         module.freeze_upstream()
         module.train()
-        optimizer = module.configure_optimizers()["optimizer"]
-        step = training_step(module, optimizer,
-                             training_batch(cfg, chain, job.stages[name].batch_size or job.data.batch_size))
+        step = training_step(module, training_batch(cfg, chain, job.stages[name].batch_size or job.data.batch_size),
+                             job.schedule.grad_clip)
         for _ in range(3):  # (the iterative stage's queue fills)
             step()
         with FlopCounterMode(display=False) as counter:
@@ -119,15 +120,24 @@ def bare_steps(overrides: Sequence[str], repeats: int, peak: float) -> dict[str,
     return out
 
 
-def training_step(module, optimizer, batch):
-    """One training step of ``module`` on ``batch``: the stage's loss, its backward pass, the optimiser."""
+def training_step(module, batch, grad_clip: float | None = None):
+    """One training step of ``module`` on ``batch`` as the job's Trainer takes it: the stage's loss, its
+    backward pass, the gradients clipped by value (``schedule.grad_clip``), the optimiser and its
+    learning-rate schedule."""
     from demon_lab.core import losses
+
+    optimisation = module.configure_optimizers()
+    optimizer, scheduler = optimisation["optimizer"], optimisation["lr_scheduler"]["scheduler"]
+    trained = [p for group in optimizer.param_groups for p in group["params"]]
 
     def step():
         loss, _ = module.stage_loss(batch, losses.ground_truth(batch))
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
+        if grad_clip:
+            torch.nn.utils.clip_grad_value_(trained, grad_clip)
         optimizer.step()
+        scheduler.step()
 
     return step
 
@@ -160,7 +170,8 @@ def loop_rates(overrides: Sequence[str]) -> dict[str, dict]:
         seconds = metrics[prefix + "seconds"]
         parts = {k[len(prefix + "profile/"):-len("_seconds")]: v / seconds for k, v in metrics.items()
                  if k.startswith(prefix + "profile/") and (any(p in k for p in BESIDE_THE_BATCH) or "outside" in k)}
-        out[name] = {"rate": metrics[prefix + "steps_per_second"], "parts": parts}
+        out[name] = {"rate": metrics.get(prefix + "loop_steps_per_second", metrics[prefix + "steps_per_second"]),
+                     "stage_rate": metrics[prefix + "steps_per_second"], "parts": parts}
     return out
 
 
@@ -181,9 +192,11 @@ def design_table(bare: Mapping[str, Mapping[str, dict]], loop: Mapping[str, Mapp
                 f"{_named(k)} {v:.1%}" for k, v in sorted(job["parts"].items(), key=lambda kv: -kv[1])[:TOP])
             rows.append([design, name, f"{b['rate']:.2f}", f"{b['flops'] / peak:.1%}",
                          "" if job is None else f"{job['rate']:.2f}",
-                         "" if job is None else f"{job['rate'] / b['rate']:.1%}", top, parts])
+                         "" if job is None else f"{job['rate'] / b['rate']:.1%}",
+                         "" if job is None else f"{job.get('stage_rate', job['rate']):.2f}", top, parts])
     return markdown_table(["design", "stage", "bare step, steps/s", "of matmul", "job's loop, steps/s", "loop / step",
-                           "the step's largest self times", "the loop beside its batches"], rows, "llrrrrll")
+                           "whole stage, steps/s", "the step's largest self times", "the loop beside its batches"],
+                          rows, "llrrrrrll")
 
 
 def correlation_by_shifts(features1: torch.Tensor, features2: torch.Tensor, max_displacement: int,
@@ -233,9 +246,8 @@ def variant_rows(repeats: int, peak: float) -> list[list[str]]:
             module = stage_module(job, chain, "flow1")
             mid_stage(module)
             module.train()
-            optimizer = module.configure_optimizers()["optimizer"]
             batch = execution.channels_last_batch(training_batch(cfg, chain, job.data.batch_size), channels_last)
-            step = training_step(module, optimizer, batch)
+            step = training_step(module, batch, job.schedule.grad_clip)
             fn = torch.compile(step) if compile_step else step
             fn()
             fn()
@@ -320,12 +332,16 @@ def bench_train(repeats: int) -> str:
         "Each stage of each design at the `cpu` scale (128x96, width 0.25, batch 8; the iterative stage 8 new + "
         "8 queued). **The bare step**: the stage's module as the job builds it, on 8 of the design's training "
         "pairs (with their classical priors where the design has them, as the job's draws carry them), "
-        "forward, backward and Adam, its ramped terms as past their ramps, no memo; its FLOP/s "
+        "forward, backward, the gradients clipped and Adam with its learning-rate schedule, its ramped terms "
+        "as past their ramps, no memo; its FLOP/s "
         "(torch.utils.flop_counter) against this machine's float32 matmul (2048x2048) in the same run, "
         f"{peak / 1e9:.0f} GFLOP/s, and its largest self times (torch.profiler, share of the step's CPU time). "
         f"**The job's loop**: `python -m demon_lab DESIGN {steps} iterations=0 trainer.profile=true` in a "
-        "temporary stage cache and store (the scene cache as the user has it), each stage's "
-        "`stage/NAME/steps_per_second`, and the largest parts of its loop beside its batches (Lightning's "
+        "temporary stage cache and store (the scene cache as the user has it), each stage's loop once running "
+        "(`stage/NAME/loop_steps_per_second`: from the end of its first tenth of batches to its last, the "
+        "loading, held-apart scoring, checkpoints and logging between them included), the whole stage "
+        "(`steps_per_second`: its set-up, first batches and end too), and the largest parts of its loop "
+        "beside its batches (Lightning's "
         "SimpleProfiler, share of the stage's time: the loader, each callback, and the rest outside both). "
         "Designs: " + "; ".join(f"{d}: `{' '.join(o) or '(the default)'}`" for d, o in DESIGNS.items()) + ".",
         "",

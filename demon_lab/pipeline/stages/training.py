@@ -36,6 +36,28 @@ from demon_lab.pipeline.stages.schedule import build_chain, load_stage, stage_di
 log = logging.getLogger(__name__)
 
 
+class LoopClock(L.Callback):
+    """The time at the end of each batch a stage trains: the rate of its loop once running
+    (:func:`loop_rate`), without what a stage does once (the trainer's set-up, the first batches, the
+    nets kept and saved at the end)."""
+
+    def __init__(self):
+        self.ends: list[float] = []
+
+    def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx) -> None:
+        self.ends.append(time.perf_counter())
+
+
+def loop_rate(ends: Sequence[float], skip: float = 0.1) -> float | None:
+    """Steps per second between the end of the batch after the first ``skip`` of ``ends`` and the last:
+    every batch of that stretch with what the loop does beside it (loading, held-apart scoring,
+    checkpoints, logging). None for fewer than 10 batches."""
+    if len(ends) < 10:
+        return None
+    first = max(1, int(skip * len(ends)))
+    return (len(ends) - first) / max(ends[-1] - ends[first - 1], 1e-9)
+
+
 class TrainingDiverged(FloatingPointError):
     """A stage's loss became NaN or infinite: the message names the stage, the step and every
     loss term (one line)."""
@@ -110,6 +132,8 @@ def train_stage(cfg: DictConfig, chain: DeMoN, stage: StageDir, logger: L.pytorc
         if spec.keep_best:
             keep = KeepBest(scorer, spec.best_metric, spec.keep_best, stage.path / "best.pt", spec.trained_nets())
             callbacks.append(keep)
+    clock = LoopClock()
+    callbacks.append(clock)
     profiler = L.pytorch.profilers.SimpleProfiler() if job.trainer.profile else None
     trainer = _trainer(job, spec.steps, logger=logger if logger is not None else False, callbacks=callbacks,
                        enable_progress_bar=progress, profiler=profiler)
@@ -133,14 +157,16 @@ def train_stage(cfg: DictConfig, chain: DeMoN, stage: StageDir, logger: L.pytorc
     steps_done = spec.steps - start_step
     figures = {"seconds": seconds, "steps_per_second": steps_done / max(seconds, 1e-9), "resumed_from_step": start_step,
                **{f"final/{k}": v for k, v in module.last_terms.items()}, **kept}
+    if (rate := loop_rate(clock.ends)) is not None:
+        figures["loop_steps_per_second"] = rate
     if rendered:
         figures.update(fresh_scenes_rendered=rendered, fresh_scenes_seconds=render_seconds)
     if profiler is not None:
         figures.update(loop_parts(profiler.recorded_durations, seconds))
     if module.memo is not None and module.memo.hits + module.memo.misses:
         figures["reuse_frozen_hits"] = module.memo.hits / (module.memo.hits + module.memo.misses)
-    # The trainer and the module refer to each other: collect them (and the datasets' in-memory
-    # samples) now rather than let every stage of a job keep its own copy until the next GC pass.
+    # The trainer and the module refer to each other: collect them (and the loader's memo of frozen
+    # outputs) now rather than let every stage of a job keep its own until the next GC pass.
     del trainer, module, datamodule
     gc.collect()
     return _logged(cfg, logger, figures, spec.steps)
@@ -151,12 +177,14 @@ def _render_fresh_scenes(datamodule) -> tuple[int, float]:
     it trains, in one process per core, where the loader would render each at its first draw on the
     cores the stage trains on. They are the next scenes of each set's split, the same for every seed
     and row, so a scene is rendered once per cache. Returns the number rendered and the seconds."""
-    from demon_lab.data.datasets import warm_cache
+    from demon_lab.data.datasets import keep_in_memory, warm_cache
 
     start = time.perf_counter()
-    rendered = warm_cache(datamodule.fresh_scenes())
+    fresh = datamodule.fresh_scenes()
+    rendered = warm_cache(fresh)
     if rendered:
         log.info("rendered %d fresh scenes into the cache in %.0f s", rendered, time.perf_counter() - start)
+    keep_in_memory(fresh)
     return rendered, time.perf_counter() - start
 
 
@@ -291,7 +319,7 @@ def prepare_chain(cfg: DictConfig, on_stage: Callable[[StageDir, str], L.pytorch
         return chain.eval(), [], figures
     table = None
     if not all(stage.done() for stage in stage_dirs(cfg)):
-        from demon_lab.data.datasets import warm_cache
+        from demon_lab.data.datasets import keep_in_memory, warm_cache
         from demon_lab.pipeline.config import instantiate
 
         start = time.perf_counter()
@@ -307,6 +335,7 @@ def prepare_chain(cfg: DictConfig, on_stage: Callable[[StageDir, str], L.pytorch
             if computed:
                 log.info("computed the classical priors of %d training scenes' pairs into the cache in %.0f s",
                          computed, time.perf_counter() - start)
+        keep_in_memory(train)  # every stage, and the loader workers it forks, reads the scenes from memory
     for stage in stage_dirs(cfg):
         # Under DDP only rank 0 takes the lock (the other ranks join its training collectively).
         with stage.lock() if global_rank(cfg) == 0 else contextlib.nullcontext():
@@ -320,5 +349,8 @@ def prepare_chain(cfg: DictConfig, on_stage: Callable[[StageDir, str], L.pytorch
             log.info("training stage %s (%s steps) -> %s", stage.name, cfg.schedule.stages[stage.name].steps,
                      stage.path)
             figures[stage.name] = train_stage(cfg, chain, stage, logger, progress, table)
+    from demon_lab.data.datasets import MEMORY
+
+    MEMORY.clear()  # the training scenes: the evaluation reads other sets
     chain.eval()
     return chain, stage_dirs(cfg), figures
