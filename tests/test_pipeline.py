@@ -224,13 +224,17 @@ def test_second_identical_invocation_is_skipped_and_stages_are_cached(smoke_run)
     from demon_lab.app.job import run
 
     tmp, result = smoke_run
-    again = run(compose_config(smoke_overrides(tmp)))
-    assert again == {"status": "skipped", "run_id": result["run_id"], "run_key": result["run_key"]}
-    # another evaluation-time setting is a new run but trains nothing: all stages come from the cache
-    other = run(compose_config(smoke_overrides(tmp, "iterations=1")))
-    assert other["status"] == "finished" and other["run_key"] != result["run_key"]
-    assert all(f == {"cached": 1.0} for f in other["figures"].values())
-    forced = run(compose_config(smoke_overrides(tmp, "force=true")))
+    threads = torch.get_num_threads()
+    try:  # (the smoke run's thread count, which its keys hold)
+        again = run(compose_config(smoke_overrides(tmp, "threads=1")))
+        assert again == {"status": "skipped", "run_id": result["run_id"], "run_key": result["run_key"]}
+        # another evaluation-time setting is a new run but trains nothing: all stages come from the cache
+        other = run(compose_config(smoke_overrides(tmp, "threads=1", "iterations=1")))
+        assert other["status"] == "finished" and other["run_key"] != result["run_key"]
+        assert all(f == {"cached": 1.0} for f in other["figures"].values())
+        forced = run(compose_config(smoke_overrides(tmp, "threads=1", "force=true")))
+    finally:
+        torch.set_num_threads(threads)
     assert forced["status"] == "finished" and forced["run_id"] != result["run_id"]
 
 
@@ -243,7 +247,11 @@ def test_diagnosis_reads_the_cached_chain_and_needs_it(smoke_run, tmp_path, caps
 
     tmp, _ = smoke_run
     out = tmp_path / "diag.json"
-    assert main([*smoke_overrides(tmp), "iterations=2", "--out", str(out)]) == 0
+    threads = torch.get_num_threads()
+    try:  # (the smoke run's thread count, which its stage keys hold)
+        assert main([*smoke_overrides(tmp, "threads=1"), "iterations=2", "--out", str(out)]) == 0
+    finally:
+        torch.set_num_threads(threads)
     passes = json.loads(out.read_text())["passes"]
     assert set(passes) >= {"synthetic_scenes11", "synthetic_sun3d", "synthetic_mvs", "middlebury"}
     for rows in passes.values():  # passes 0, 1, 2 and the refined depth
@@ -405,10 +413,10 @@ EXPERIMENTS = sorted(p.stem for p in (resources.CONF / "experiment").glob("*.yam
 """The experiments that run on demon_lab's own data (released_model needs DeMoN's files and weights:
 tests/test_released.py)."""
 SWEPT = [e for e in EXPERIMENTS if e not in ("cpu_recipe", "cpu_design", "cpu_motion", "cpu_prior", "cpu_departures",
-                                             "learned_design", "baseline_thresholds")]
+                                             "learned_design", "learned_rerun", "baseline_thresholds")]
 """The experiments that declare a sweep (the probes of cpu_recipe, cpu_design, cpu_motion, cpu_prior,
-cpu_departures, learned_design and baseline_thresholds are single jobs, the commands of their study specs
-in ablations/, which tests/test_report.py composes)."""
+cpu_departures, learned_design, learned_rerun and baseline_thresholds are single jobs, the commands of their
+study specs in ablations/, which tests/test_report.py composes)."""
 
 
 @pytest.mark.parametrize("experiment", SWEPT)
