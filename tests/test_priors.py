@@ -4,6 +4,8 @@ without them: the loss, every gradient, to the bit."""
 
 from __future__ import annotations
 
+import math
+
 import pytest
 import torch
 from hydra import compose, initialize_config_dir
@@ -140,3 +142,39 @@ def test_a_job_with_priors_draws_its_pairs_with_them(tmp_path):
     assert torch.equal(batch["prior_motion"], chain.prior_motion(batch["prior_flow"], batch["intrinsics"],
                                                                  batch["prior_flow"]))
     assert table.misses == {}
+
+
+@pytest.mark.parametrize("kind", ["flow1", "dm1"])
+def test_held_apart_scoring_reads_each_pairs_priors_once_and_scores_what_the_chain_computes(kind, monkeypatch):
+    """A stage's held-apart scoring (StageValidation) computes the held-apart pairs' priors at its first scoring
+    only, and its scores equal those of the chain computing the priors itself, to the bit."""
+    from demon_lab.nets import chain as chain_module
+    from demon_lab.nets import flow_net
+    from demon_lab.pipeline.stages.validation import StageValidation
+
+    with initialize_config_dir(str(resources.CONF), version_base="1.3"):
+        cfg = compose("config", ["scale=smoke"])
+    from demon_lab.pipeline.schema import stage_spec
+
+    chain = _chain().eval()
+    held_apart = SyntheticDataset("synthetic_sun3d", length=3, size=SIZE, split="val", cache_dir=False)
+    scorer = StageValidation(stage_spec(cfg, kind), [held_apart], every_n_steps=1, batch_size=2)
+    loader = torch.utils.data.DataLoader(held_apart, batch_size=2, shuffle=False)
+    with torch.no_grad():
+        expected = scorer._scores(chain, list(loader))  # plain batches: the chain computes the priors
+    calls = {"dis": 0, "ransac": 0}
+    dis, ransac = flow_net.dis_prior, chain_module.ransac_motion
+    monkeypatch.setattr(flow_net, "dis_prior",
+                        lambda *a, **k: calls.__setitem__("dis", calls["dis"] + 1) or dis(*a, **k))
+    monkeypatch.setattr(chain_module, "ransac_motion",
+                        lambda *a, **k: calls.__setitem__("ransac", calls["ransac"] + 1) or ransac(*a, **k))
+    computed, compute = [], pair_priors.PairPriors.compute
+    monkeypatch.setattr(pair_priors.PairPriors, "compute", lambda self, samples: computed.append(len(samples)) or
+                        compute(self, samples))
+    with torch.no_grad():
+        first = scorer._scores(chain, scorer.batches(chain, 0))
+        again = scorer._scores(chain, scorer.batches(chain, 0))
+    assert all(b.keys() >= {"prior_flow", "prior_motion"} for b in scorer.batches(chain, 0))
+    assert computed == [2, 1] and calls == {"dis": 0, "ransac": 0}  # each pair once, and never by the chain
+    assert first == again and first.keys() == expected.keys()
+    assert all(first[k] == expected[k] or (math.isnan(first[k]) and math.isnan(expected[k])) for k in first)

@@ -333,9 +333,12 @@ class DeMoN(nn.Module):
 
     def forward(self, image1: torch.Tensor, image2: torch.Tensor, intrinsics: torch.Tensor,
                 iterations: int = 3, oracle: str | None = None, gt: dict | None = None,
-                refine: bool = True, priors: bool = False) -> ChainOutput:
+                refine: bool = True, priors: bool = False, prior_flow: torch.Tensor | None = None,
+                prior_motion: torch.Tensor | None = None) -> ChainOutput:
         """``refine=False`` leaves out the refinement net (``refined`` is None); ``priors=True`` adds
-        the classical priors alone (:meth:`priors_alone`) where the chain has them."""
+        the classical priors alone (:meth:`priors_alone`) where the chain has them. ``prior_flow``,
+        ``prior_motion``: the bootstrap pass's classical priors of this pair where the caller has them
+        (:meth:`bootstrap`); None computes them."""
         if oracle not in ORACLES:
             raise ValueError(f"oracle: expected one of {ORACLES}, got {oracle!r}")
         if iterations < 0:
@@ -348,7 +351,7 @@ class DeMoN(nn.Module):
         pair = torch.cat([image1, image2], 1)
         image2_2 = downsample_image(image2)
         gt2 = ground_truth_inputs(gt, intrinsics) if oracle is not None else None
-        passes = [self.bootstrap(pair, image2_2, intrinsics, gt2, oracle)]
+        passes = [self.bootstrap(pair, image2_2, intrinsics, gt2, oracle, prior_flow, prior_motion)]
         for _ in range(iterations):
             passes.append(self.iterate(pair, image2_2, intrinsics, passes[-1], gt2, oracle))
         return ChainOutput(passes, self.refine(image1, passes[-1].inv_depth) if refine else None,

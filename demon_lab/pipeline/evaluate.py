@@ -39,16 +39,19 @@ def run_chain(chain: DeMoN, batches: Iterable[dict[str, Any]], iterations: int, 
     the bootstrap and, with ``refine``, the refined depth. The chain runs without gradients, its nets in
     ``precision`` (:mod:`demon_lab.core.execution`; the predictions it returns are float32);
     ``oracle`` feeds it the batch's ground truth (:class:`DeMoN`); ``priors`` adds its classical priors
-    alone (``ChainOutput.priors``, where it has them). The caller's code between the
+    alone (``ChainOutput.priors``, where it has them). A batch that carries the pairs' bootstrap priors
+    (``prior_flow``, ``prior_motion``: :mod:`demon_lab.pipeline.stages.priors`) gives them to the chain,
+    which then does not compute them. The caller's code between the
     batches runs outside that autocast region, with gradients as the caller has them."""
     device = next(chain.parameters()).device
     for batch in batches:
         inputs = {k: v.to(device) if isinstance(v, torch.Tensor) else v for k, v in batch.items()}
         inputs = execution.channels_last_batch(inputs, channels_last)
         gt = {"inv_depth": inputs["inv_depth"], "motion": inputs["motion"]} if oracle else None
+        given = {k: inputs[k] for k in ("prior_flow", "prior_motion") if k in inputs}
         with torch.no_grad(), execution.autocast(device, precision):
             out = chain(inputs["image1"], inputs["image2"], inputs["intrinsics"], iterations=iterations,
-                        oracle=oracle, gt=gt, refine=refine, **({"priors": True} if priors else {}))
+                        oracle=oracle, gt=gt, refine=refine, **({"priors": True} if priors else {}), **given)
         yield batch, inputs, out
 
 

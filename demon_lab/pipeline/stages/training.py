@@ -266,7 +266,8 @@ def screen_restarts(cfg: DictConfig, job: JobSettings, chain: DeMoN, stage: Stag
         trainer.fit(module, train_dataloaders=data.train_dataloader())
         chain.eval()
         with torch.no_grad():
-            epe = [scorer._scores(chain, dataset, module.channels_last)["epe"] for dataset in scorer.datasets]
+            epe = [scorer._scores(chain, scorer.batches(chain, which), module.channels_last)["epe"]
+                   for which in range(len(scorer.datasets))]
         scores.append(sum(epe) / len(epe))
         log.info("stage %s: start %d of %d: held-apart EPE %.4f after %d steps", stage.name, i + 1, starts,
                  scores[-1], steps)

@@ -12,7 +12,10 @@ synthetic_sun3d validation scenes in the default mix) and the stage's MLflow run
 The same scores choose a stage's kept nets with the stage option ``keep_best`` (:class:`KeepBest`).
 
 It reads the chain in eval mode without gradients and puts the trained nets back in training
-mode: training itself is unchanged (bit for bit; ``tests/test_pipeline.py``). The pass scored is
+mode: training itself is unchanged (bit for bit; ``tests/test_pipeline.py``). The held-apart pairs are
+loaded once per stage, with the chain's classical priors of each pair where it reads any (the
+``cpu`` profile's DIS flow and its RANSAC motion: functions of the pair alone,
+:class:`demon_lab.pipeline.stages.priors.PairPriors`), so a scoring runs the nets only. The pass scored is
 the one the stage trains: the bootstrap pass for flow1 and dm1, the first iterative pass for
 flow2, dm2 and iterative, and for refine the refinement of the pass its training uses.
 """
@@ -50,6 +53,7 @@ class StageValidation(L.Callback):
         self.every, self.batch_size = int(every_n_steps), int(batch_size)
         self._zero_logged = False
         self._last: tuple[int, dict[str, float]] | None = None
+        self._batches: dict[int, list[dict[str, Any]]] = {}  # each set's batches, with their priors
         self.last_seconds = 0.0  # what scoring the last scored step took (whichever callback asked first)
 
     def due(self, trainer) -> bool:
@@ -69,8 +73,8 @@ class StageValidation(L.Callback):
         chain.eval()
         try:
             values = {}
-            for dataset in self.datasets:
-                scores = self._scores(chain, dataset, getattr(module, "channels_last", False),
+            for which, dataset in enumerate(self.datasets):
+                scores = self._scores(chain, self.batches(chain, which), getattr(module, "channels_last", False),
                                       trainer.precision_plugin.precision)
                 values.update({f"val/{dataset.name}/{k}": v for k, v in scores.items()})
         finally:
@@ -92,11 +96,29 @@ class StageValidation(L.Callback):
             values = {k: v for k, v in values.items() if not k.endswith("zero_flow_epe")}
         trainer.logger.log_metrics({k: v for k, v in values.items() if math.isfinite(v)}, step=step)
 
-    def _scores(self, chain, dataset, channels_last: bool = False, precision: Any = 32) -> dict[str, float]:
-        """The module docstring's metrics on ``dataset``, the chain's nets in ``precision`` (the stage's)."""
+    def batches(self, chain, which: int) -> list[dict[str, Any]]:
+        """Held-apart set ``which`` in batches, loaded at its first scoring, each with the pairs' classical
+        priors where ``chain`` reads them (:class:`PairPriors`: the values the chain would compute)."""
+        if which not in self._batches:
+            from demon_lab.pipeline.stages.priors import PairPriors
+
+            priors = PairPriors.of(chain)
+            loader = torch.utils.data.DataLoader(self.datasets[which], batch_size=self.batch_size, shuffle=False)
+            self._batches[which] = []
+            for batch in loader:
+                if priors is not None:
+                    pairs = [{k: batch[k][i] for k in ("image1", "image2", "intrinsics")}
+                             for i in range(batch["image1"].shape[0])]
+                    fields = priors.compute(pairs)
+                    batch.update({k: torch.stack([f[k] for f in fields]) for k in fields[0]})
+                self._batches[which].append(batch)
+        return self._batches[which]
+
+    def _scores(self, chain, batches, channels_last: bool = False, precision: Any = 32) -> dict[str, float]:
+        """The module docstring's metrics on ``batches`` (:meth:`batches`), the chain's nets in
+        ``precision`` (the stage's)."""
         rows: dict[str, list[float]] = {"epe": [], "zero_flow_epe": [], "rot_deg": [], "tran_deg": [], "l1_inv": []}
-        loader = torch.utils.data.DataLoader(dataset, batch_size=self.batch_size, shuffle=False)
-        for _, b, out in run_chain(chain, loader, self.iterations, precision=precision, channels_last=channels_last,
+        for _, b, out in run_chain(chain, batches, self.iterations, precision=precision, channels_last=channels_last,
                                    refine=self.spec.kind == "refine"):
             p = out.passes[-1]
             gt = losses.ground_truth(b)
