@@ -25,7 +25,7 @@ ROOT = Path(__file__).resolve().parents[1]
 OWN_STUDY = ROOT / "docs" / "guides" / "your_own_study.md"
 RELEASED = ROOT / "docs" / "guides" / "released_weights.md"
 FENCE = re.compile(r"^```(\w*)\n(.*?)^```", re.M | re.S)
-FILE_LINE = re.compile(r"`([^`\s]+\.(?:yaml|csv))`:\s*$")
+FILE_LINE = re.compile(r"`([^`\s]+\.(?:yaml|csv|py))`:\s*$")
 """The line before a block that the reader saves as a file: ``File `my_conf/experiment/NAME.yaml`:``."""
 EXAMPLE = "## A worked example"
 COMMANDS = ("bash", "text")

@@ -516,8 +516,29 @@ def test_the_probe_options_are_absent_from_every_profile_and_key_only_their_stag
                                                                              strict=True))
 
 
-# The cpu profile's departures turned off: DeMoN's design at every scale (cpu takes the four priors).
-DEMON_DESIGN = ("model.flow1_prior=null", "model.dm1_prior=null", "model.flow2_prior=null", "model.dm2_prior=null")
+# DeMoN's design at every scale (the cpu scale's profile has four priors: design=demon turns them off).
+DEMON_DESIGN = ("design=demon",)
+FOUR_PRIORS_OFF = ("model.flow1_prior=null", "model.dm1_prior=null", "model.flow2_prior=null", "model.dm2_prior=null")
+
+
+@pytest.mark.parametrize("scale", ["smoke", "cpu", "paper"])
+def test_design_demon_is_demons_design_at_every_scale_with_the_keys_of_the_four_priors_off(scale):
+    """design=demon composes DeMoN's design: at the smoke and paper scales the scale's own config, at the cpu
+    scale the profile with its four priors off, each with the stage and run keys of those configs."""
+    import demon_lab.pipeline.config  # noqa: F401  (registers the resolvers, as the app does)
+    from demon_lab.pipeline.identity import run_key
+    from demon_lab.pipeline.stages.schedule import stage_dirs
+    from demon_lab.pipeline.tracking import flatten
+    from demon_lab.reporting.provenance import DEMON, departures, design_name
+
+    with initialize_config_dir(CONF, version_base="1.3"):
+        named = compose("config", [f"scale={scale}", "design=demon"])
+        spelled = compose("config", [f"scale={scale}", *FOUR_PRIORS_OFF])
+        own = compose("config", [f"scale={scale}"])
+    assert run_key(named) == run_key(spelled)
+    assert [d.key for d in stage_dirs(named)] == [d.key for d in stage_dirs(spelled)]
+    assert design_name(departures(flatten(OmegaConf.to_container(named, resolve=True)))) == DEMON
+    assert (run_key(named) == run_key(own)) == (scale != "cpu")
 
 
 @pytest.mark.parametrize("option, key, built", [

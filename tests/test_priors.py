@@ -39,7 +39,7 @@ def test_a_pairs_priors_are_the_chains_for_a_batch_of_the_same_pairs(scenes):
     batch = _batch(samples)
     chain = DeMoN("v1", 0.25, SIZE, flow1_prior="dis_x2", dm1_prior="ransac_prior")
     pair = torch.cat([batch["image1"], batch["image2"]], 1)
-    flow = chain.flow1.prior_flow(pair)
+    flow = chain.prior_flow(pair)
     motion = chain.prior_motion(flow, batch["intrinsics"], flow)
     ours = pair_priors.PairPriors.of(chain).compute(samples)
     assert torch.equal(torch.stack([o["prior_flow"] for o in ours]), flow)
@@ -108,6 +108,7 @@ def test_a_stage_computes_the_same_with_its_pairs_priors_as_without(scenes, kind
             def computed(*args, **kwargs):
                 raise AssertionError("a prior the batch carries was computed again")
             monkeypatch.setattr(flow_net, "dis_prior", computed)
+            monkeypatch.setattr(chain_module, "dis_prior", computed)
             monkeypatch.setattr(chain_module, "ransac_motion", computed)
         module = make(_chain())
         module.ramp = lambda *args, **kwargs: 1.0  # every term on
@@ -138,7 +139,7 @@ def test_a_job_with_priors_draws_its_pairs_with_them(tmp_path):
     assert computed == 4 * len(train)  # smoke: 4 scenes per preset
     batch = next(iter(training.build_datamodule(cfg, JobSettings.of(cfg), 4, 8, priors=table).train_dataloader()))
     pair = torch.cat([batch["image1"], batch["image2"]], 1)
-    assert torch.equal(batch["prior_flow"], chain.flow1.prior_flow(pair))
+    assert torch.equal(batch["prior_flow"], chain.prior_flow(pair))
     assert torch.equal(batch["prior_motion"], chain.prior_motion(batch["prior_flow"], batch["intrinsics"],
                                                                  batch["prior_flow"]))
     assert table.misses == {}
@@ -164,8 +165,9 @@ def test_held_apart_scoring_reads_each_pairs_priors_once_and_scores_what_the_cha
         expected = scorer._scores(chain, list(loader))  # plain batches: the chain computes the priors
     calls = {"dis": 0, "ransac": 0}
     dis, ransac = flow_net.dis_prior, chain_module.ransac_motion
-    monkeypatch.setattr(flow_net, "dis_prior",
-                        lambda *a, **k: calls.__setitem__("dis", calls["dis"] + 1) or dis(*a, **k))
+    for module in (flow_net, chain_module):
+        monkeypatch.setattr(module, "dis_prior",
+                            lambda *a, **k: calls.__setitem__("dis", calls["dis"] + 1) or dis(*a, **k))
     monkeypatch.setattr(chain_module, "ransac_motion",
                         lambda *a, **k: calls.__setitem__("ransac", calls["ransac"] + 1) or ransac(*a, **k))
     computed, compute = [], pair_priors.PairPriors.compute

@@ -255,9 +255,9 @@ def _print_study_rows(cfg: DictConfig) -> None:
 
     study = None
     try:
-        study = report.study_of(str(cfg.experiment), design=provenance.config_design(cfg))
-        if study is None:
+        if report.study_of(str(cfg.experiment)) is None:  # no study reports it (the default experiment)
             return
+        study = report.study_of(str(cfg.experiment), design=provenance.config_design(cfg))
         text = report.study_rows(study, cfg.tracking.uri, str(cfg.experiment))
     except Exception as e:  # the job's own result is recorded and printed either way
         log.warning("study %s: no table of its rows (%s: %s)", study, type(e).__name__, e)

@@ -16,6 +16,7 @@ iterative flow net with ground truth. Both need ``gt`` with
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass, replace
 
 import torch
@@ -29,8 +30,9 @@ from demon_lab.nets.blocks import VARIANTS, check_correlation, check_size
 from demon_lab.nets.depth_motion_net import DepthMotion, DepthMotionNet
 from demon_lab.nets.flow_net import FlowNet
 from demon_lab.nets.prior import CHOICES as PRIOR_CHOICES
-from demon_lab.nets.prior import RANSAC_SETTINGS, ransac_motion
+from demon_lab.nets.prior import DIS_UPSAMPLE, RANSAC_SETTINGS, dis_prior, ransac_motion
 from demon_lab.nets.refine_net import RefineNet
+from demon_lab.nets.slots import ATTRIBUTES, SLOTS
 
 ORACLES = (None, "flow", "depth_motion")
 COMPATS = (None, "demon_original")
@@ -195,38 +197,50 @@ class DeMoN(nn.Module):
     motion (which it reads, as DeMoN's does), starting at none, instead of the motion itself; or
     None (:mod:`demon_lab.nets.prior`; not DeMoN's design). ``flow2_prior``: ``"previous"`` makes the
     iterative flow net predict a correction of the previous pass's flow (at levels 2 and 5), starting
-    at none, instead of the flow itself; or None (not DeMoN's design)."""
+    at none, instead of the flow itself; or None (not DeMoN's design). ``nets``: nets of one's own for
+    some of the chain's slots (``flow1``, ``dm1``, ``flow2``, ``dm2``, ``refine``; each with the
+    slot's signature, :mod:`demon_lab.nets.slots`), in place of DeMoN's."""
 
     def __init__(self, variant: str = "v1", width: float = 1.0, size: tuple[int, int] = (192, 256),
                  compat: str | None = None, correlation: tuple[int, int] | None = None,
                  flow1_prior: str | None = None, dm1_prior: str | None = None, flow2_prior: str | None = None,
-                 dm2_prior: str | None = None):
+                 dm2_prior: str | None = None, nets: Mapping[str, nn.Module] | None = None):
         super().__init__()
         check_options(variant, width, compat, correlation,
                       dict(flow1_prior=flow1_prior, dm1_prior=dm1_prior, flow2_prior=flow2_prior, dm2_prior=dm2_prior))
         check_size(*size)
+        given = dict(nets or {})
+        if set(given) - set(SLOTS):
+            raise ValueError(f"nets: no slot {sorted(set(given) - set(SLOTS))}; expected some of {', '.join(SLOTS)}")
         self.variant, self.width, self.size, self.compat = variant, width, tuple(size), compat
         self.correlation = None if correlation is None else check_correlation(correlation)
+        self.flow1_prior, self.dm1_prior = flow1_prior, dm1_prior
+        self.flow2_prior, self.dm2_prior = flow2_prior, dm2_prior
         kw = dict(variant=variant, width=width, size=self.size)
-        self.flow1_prior = flow1_prior
-        self.flow1 = FlowNet(iterative=False, correlation=self.correlation, prior=self.flow1_prior, **kw)
-        self.dm1_prior = dm1_prior
-        self.dm1 = DepthMotionNet(iterative=self.dm1_prior is not None, **kw)  # + the depth from the prior
-        self.flow2_prior = flow2_prior
-        self.flow2 = FlowNet(iterative=True, correlation=self.correlation, **kw)
-        if self.flow2_prior:  # the correction of the previous flow starts at none
-            with torch.no_grad():
+        own = {  # DeMoN's net of each slot that none is given for
+            "flow1": lambda: FlowNet(iterative=False, correlation=self.correlation, prior=flow1_prior, **kw),
+            "dm1": lambda: DepthMotionNet(iterative=dm1_prior is not None, **kw),  # + the depth from the prior
+            "flow2": lambda: FlowNet(iterative=True, correlation=self.correlation, **kw),
+            "dm2": lambda: DepthMotionNet(iterative=True, **kw),
+            "refine": lambda: RefineNet(variant=variant, width=width)}
+        for slot in SLOTS:
+            setattr(self, ATTRIBUTES[slot], given[slot] if slot in given else own[slot]())
+        self.plugins = tuple(slot for slot in SLOTS if slot in given)
+        with torch.no_grad():
+            if self.flow2_prior and "flow2" not in given:  # the correction of the previous flow starts at none
                 for head in (self.flow2.predict_flow5, self.flow2.predict_flow2):
                     head.out.conv.weight[:2].zero_()
                     head.out.conv.bias[:2].zero_()
-        self.dm2_prior = dm2_prior
-        self.dm2 = DepthMotionNet(iterative=True, **kw)
-        for net, prior in ((self.dm1, self.dm1_prior), (self.dm2, self.dm2_prior)):
-            if prior:  # the correction of the prior motion starts at none
-                with torch.no_grad():
-                    net.motion_fc3.weight[:6].zero_()
-                    net.motion_fc3.bias[:6].zero_()
-        self.refine_net = RefineNet(variant=variant, width=width)
+            for slot, prior in (("dm1", self.dm1_prior), ("dm2", self.dm2_prior)):
+                if prior and slot not in given:  # the correction of the prior motion starts at none
+                    getattr(self, slot).motion_fc3.weight[:6].zero_()
+                    getattr(self, slot).motion_fc3.bias[:6].zero_()
+
+    def prior_flow(self, pair: torch.Tensor) -> torch.Tensor:
+        """flow1's classical prior flow of ``pair`` at level 2 (``flow1_prior``:
+        :func:`demon_lab.nets.prior.dis_prior`)."""
+        with torch.no_grad():
+            return dis_prior(pair, level=2, upsample=DIS_UPSAMPLE[self.flow1_prior])
 
     def bootstrap(self, pair: torch.Tensor, image2_2: torch.Tensor, intrinsics: torch.Tensor,
                   gt2: GroundTruthInputs | None = None, oracle: str | None = None,
@@ -266,7 +280,7 @@ class DeMoN(nn.Module):
         if not self.flow1_prior:
             prior_flow = None
         elif prior_flow is None:
-            prior_flow = self.flow1.prior_flow(pair)
+            prior_flow = self.prior_flow(pair)
         return (*self.flow1(pair, prior2=prior_flow), prior_flow)
 
     def prior_motion(self, flow: torch.Tensor, intrinsics: torch.Tensor,
@@ -324,7 +338,7 @@ class DeMoN(nn.Module):
         if not (self.flow1_prior and self.dm1_prior):
             return None
         with torch.no_grad():
-            flow = self.flow1.prior_flow(pair).float()
+            flow = self.prior_flow(pair).float()
             motion = self.prior_motion(flow, intrinsics, flow)
             inv_depth = finite(geo.depth_from_flow_motion(flow, motion, intrinsics, clip=(0.0, 50.0)))
         b, _, h, w = flow.shape

@@ -48,6 +48,8 @@ NEUTRAL: dict[str, Any] = {
     "model.compat": None, "model.weights": None, "model.correlation": None,
     "model.flow1_prior": None, "model.dm1_prior": None, "model.flow2_prior": None, "model.dm2_prior": None,
     "precision": "32-true",
+    "model.nets": {"flow1": None, "dm1": None, "flow2": None, "dm2": None, "refine": None},
+    **{f"model.nets.{slot}": None for slot in ("flow1", "dm1", "flow2", "dm2", "refine")},
 }
 """The options added after keys were first written, each with its neutral value (precision by its
 normalised name). A new option that every config writes (a key of ``conf/model/demon.yaml``, a
@@ -164,9 +166,15 @@ def leave_out_neutral(plain: dict[str, Any], prefix: str = "") -> dict[str, Any]
 def model_identity(model: dict[str, Any]) -> dict[str, Any]:
     """A plain ``model`` config as keys hold it: its neutral options left out (:func:`leave_out_neutral`),
     without :data:`EXECUTION_KEYS` (which never change a key), a correlation front with its
-    :data:`demon_lab.nets.blocks.CORRELATION_VERSION` (from 2 on), and ``weights`` named by the file's
-    content (``sha256:...``), not its path: a moved file keeps its keys, a changed one gets new ones."""
+    :data:`demon_lab.nets.blocks.CORRELATION_VERSION` (from 2 on), each net of one's own by its class,
+    arguments and source digest (:func:`demon_lab.nets.slots.plugin_identity`: an edit of its module
+    trains it again), and ``weights`` named by the file's content (``sha256:...``), not its path: a
+    moved file keeps its keys, a changed one gets new ones."""
     model = {k: v for k, v in leave_out_neutral(model, "model.").items() if k not in EXECUTION_KEYS}
+    if model.get("nets"):
+        from demon_lab.nets.slots import plugin_identity
+
+        model["nets"] = {slot: plugin_identity(node) for slot, node in model["nets"].items()}
     if model.get("correlation") is not None:  # how the front computes (its rounding): the version since 1
         from demon_lab.nets.blocks import CORRELATION_VERSION
 

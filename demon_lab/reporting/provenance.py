@@ -2,7 +2,8 @@
 the code that ran it and the runs themselves.
 
 A design is named by its departures from DeMoN's design: the model options that give a net a prior
-or a correlation front, and the stage options that a stage of DeMoN's schedule leaves out (2-D
+or a correlation front, a net of one's own in a slot of the chain (``model.nets.SLOT``), and the
+stage options that a stage of DeMoN's schedule leaves out (2-D
 layers first, fresh scenes, keeping the best held-apart nets, ...), each where it is off its
 default. The designs the project ships at the ``cpu`` scale (the profile with its classical priors,
 ``design=learned``) are composed from ``conf/`` and named when a run's departures are exactly
@@ -52,10 +53,12 @@ class DesignMixError(ValueError):
 
 def departures(params: Mapping[str, Any]) -> dict[str, str]:
     """A run's departures from DeMoN's design: its params (dotted keys, string values) that
-    :data:`DEPARTURE_MODEL_KEYS` or :data:`DEPARTURE_STAGE_OPTION` name, where not off."""
+    :data:`DEPARTURE_MODEL_KEYS` or :data:`DEPARTURE_STAGE_OPTION` name, and a net of its own
+    (``model.nets.SLOT._target_`` and its arguments), where not off."""
     out = {}
     for key, value in params.items():
-        if (key in DEPARTURE_MODEL_KEYS or DEPARTURE_STAGE_OPTION.match(key)) and str(value) not in OFF:
+        departs = key in DEPARTURE_MODEL_KEYS or DEPARTURE_STAGE_OPTION.match(key) or key.startswith("model.nets.")
+        if departs and str(value) not in OFF:
             out[key] = str(value)
     return dict(sorted(out.items()))
 

@@ -33,12 +33,11 @@ from demon_lab.tools.benchmarking import machine_line, measure
 
 DESIGNS: dict[str, tuple[str, ...]] = {
     "profile": (),
-    "DeMoN's design": ("model.flow1_prior=null", "model.dm1_prior=null", "model.flow2_prior=null",
-                       "model.dm2_prior=null"),
+    "DeMoN's design": ("design=demon",),
     "learned": ("design=learned",),
 }
-"""The shipped designs at the cpu scale, by the overrides that choose them (DeMoN's design: the
-cpu_departures study's row ``demon``)."""
+"""The shipped designs at the cpu scale, by the overrides that choose them (DeMoN's design,
+``design=demon``: the cpu_departures study's row ``demon``)."""
 
 LOOP_STEPS = {"flow1": 1000, "dm1": 600, "flow2": 400, "dm2": 400, "iterative": 300, "refine": 300}
 """Steps of each stage in the job the bench times (each long enough to hold its held-apart scoring,

@@ -41,7 +41,7 @@ class FlowStage(StageModule):
         if self.net == "flow1":
             prior2 = batch.get("prior_flow")  # computed once per pair where the data carries it
             if self.chain.flow1_prior and prior2 is None:
-                prior2, = self.frozen(lambda p: (self.chain.flow1.prior_flow(p),), pair)
+                prior2, = self.frozen(lambda p: (self.chain.prior_flow(p),), pair)
             flow5, flow2 = self.chain.flow1(pair, prior2=prior2)
         else:
             oracle = self.oracle == "depth_motion"

@@ -61,9 +61,16 @@ without ``dm2_prior``)."""
 
 
 def _stage_model(model: dict[str, Any], name: str, names: list[str]) -> dict[str, Any]:
-    return {k: v for k, v in model.items()
-            if not (k in MODEL_OPTION_FROM and MODEL_OPTION_FROM[k] in names
-                    and names.index(name) < names.index(MODEL_OPTION_FROM[k]))}
+    """``model`` as stage ``name`` keys it: without the options, and the nets of one's own, of the
+    slots that a later stage trains first (a net of one's own in ``dm1`` shares ``flow1``)."""
+    def later(stage: str) -> bool:
+        return stage in names and names.index(name) < names.index(stage)
+
+    out = {k: v for k, v in model.items() if not (k in MODEL_OPTION_FROM and later(MODEL_OPTION_FROM[k]))}
+    if "nets" in out:
+        nets = {slot: v for slot, v in out["nets"].items() if not later(slot)}
+        out = {k: v for k, v in out.items() if k != "nets"} | ({"nets": nets} if nets else {})
+    return out
 
 
 def stage_dirs(cfg: DictConfig) -> list[StageDir]:
@@ -83,7 +90,8 @@ def build_chain(cfg: DictConfig) -> DeMoN:
     loaded (:func:`demon_lab.pipeline.weights.load_weights`); its nets in channels-last layout and
     compiled when ``model.channels_last`` / ``model.compile`` ask for it."""
     model = ModelSpec.of(cfg.model)
-    chain = DeMoN(model.variant, model.width, tuple(cfg.data.size), model.compat, model.correlation, **model.priors())
+    chain = DeMoN(model.variant, model.width, tuple(cfg.data.size), model.compat, model.correlation, **model.priors(),
+                  nets=model.plugins())
     if model.weights:
         from demon_lab.pipeline.weights import load_weights
 
