@@ -460,3 +460,20 @@ def test_a_stage_that_diverges_fails_its_own_run_not_the_finished_stages_before_
     assert stages["dm1"].info.status == "FAILED" and "non-finite loss" in stages["dm1"].data.tags["demon_lab.error"]
     (job,) = [r for r in runs if "demon_lab.run_key" in r.data.tags]
     assert job.info.status == "FAILED"
+
+
+def test_a_bad_config_is_refused_before_lightning_or_mlflow_is_imported(tmp_path):
+    """A job whose config fails its checks exits with its one line having loaded neither Lightning nor MLflow
+    (the job's imports of training and tracking come after the checks)."""
+    import subprocess
+    import sys
+
+    probe = ("import atexit, runpy, sys\n"
+             "atexit.register(lambda: print('LOADED', sorted({m.split('.')[0] for m in sys.modules} & "
+             "{'lightning', 'mlflow'})))\n"
+             "sys.argv = ['demon_lab', 'scale=smoke', 'model.width=-1']\n"
+             "runpy.run_module('demon_lab', run_name='__main__')\n")
+    done = subprocess.run([sys.executable, "-c", probe], cwd=tmp_path, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 2, done.stderr
+    assert done.stderr.strip() == "error: model.width: expected a positive number, got -1"
+    assert "LOADED []" in done.stdout

@@ -273,13 +273,15 @@ def _parent_run() -> str | None:
 
 def known_errors() -> tuple[type[BaseException], ...]:
     """Errors that are the user's to fix (a config, data, store or checkpoint problem, a diverged
-    stage): one line, no traceback."""
+    stage): one line, no traceback. A diverged stage is the training module's error, which a job refused
+    before it trained has not imported (nor Lightning with it): it is looked up only where it is loaded."""
     from demon_lab.data.sample import DataError
     from demon_lab.pipeline.stages.cache import CheckpointError
-    from demon_lab.pipeline.stages.training import TrainingDiverged
     from demon_lab.pipeline.tracking import TrackingError
 
-    return ConfigError, DataError, TrackingError, CheckpointError, TrainingDiverged
+    training = sys.modules.get("demon_lab.pipeline.stages.training")
+    diverged = (training.TrainingDiverged,) if training is not None else ()
+    return ConfigError, DataError, TrackingError, CheckpointError, *diverged
 
 
 def main_task(cfg: DictConfig) -> dict[str, Any] | None:
