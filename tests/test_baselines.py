@@ -492,3 +492,20 @@ def test_the_baselines_parameters_are_checked_where_they_are_built_with_the_conf
     with pytest.raises(ValueError) as e:
         BaselineConfig.default(**values)
     assert str(e.value) == message
+
+
+def test_each_method_says_once_whether_it_runs_the_chain_and_how_it_is_scored():
+    """The method registry (demon_lab.pipeline.methods): the chain and Base-Mat-F run the chain (train it, key
+    its precision and threads), the chain alone is scored pass by pass; every method a job accepts is there."""
+    from demon_lab.baselines import METHODS as BASELINES
+    from demon_lab.pipeline.methods import METHODS, method
+
+    assert list(METHODS) == ["demon", *BASELINES]
+    assert [m for m in METHODS if method(m).runs_chain] == ["demon", "base_mat_f"]
+    assert [m for m in METHODS if method(m).scores_passes] == ["demon"]
+    assert method("demon").passes(2, refined=True, priors=True) == ["priors", 0, 1, 2, "refined"]
+    assert method("demon").passes(0, refined=False) == [0] and method("demon").summary_metrics(3) == "it3"
+    assert method("base_sift").passes(3, refined=True) == ["baseline"] and method("base_ff").summary_metrics(3) == ""
+    assert method("base_mat_f").at_chain_size and not method("base_5pt").at_chain_size
+    with pytest.raises(ValueError, match="method: expected one of demon, base_ff"):
+        method("sgm")

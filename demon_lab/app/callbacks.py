@@ -32,6 +32,8 @@ from hydra.core.utils import JobReturn, JobStatus
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig
 
+from demon_lab.pipeline.methods import method
+
 log = logging.getLogger(__name__)
 
 
@@ -108,7 +110,7 @@ class MultirunTracking(Callback):
         for r in job_returns:
             returned = r.return_value if r.status == JobStatus.COMPLETED and isinstance(r._return_value, dict) else {}
             cfg = r.cfg  # (None where Hydra could not compose the job)
-            chain = cfg is None or cfg.method == "demon"  # (a classical method's summary has no passes)
+            chain = cfg is None or method(cfg.method).scores_passes  # (a classical method's summary has no passes)
             self.jobs.append({"overrides": list(r.overrides or []), "run_id": returned.get("run_id"),
                               "status": returned.get("status") or ("FAILED" if r.status == JobStatus.FAILED else "-"),
                               "pass": ("-" if cfg is None else cfg.iterations) if chain else "baseline"})

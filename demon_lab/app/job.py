@@ -23,8 +23,9 @@ from omegaconf import DictConfig, OmegaConf
 
 from demon_lab.core.metrics import UNITS_NOTE
 from demon_lab.pipeline.config import ConfigError
+from demon_lab.pipeline.methods import method
 from demon_lab.pipeline.settings import JobSettings, TrackingSettings
-from demon_lab.pipeline.validate import CHAIN_METHODS, validate
+from demon_lab.pipeline.validate import validate
 
 log = logging.getLogger(__name__)
 
@@ -76,7 +77,7 @@ def run(cfg: DictConfig) -> dict[str, Any]:
         from demon_lab.core.execution import set_threads
 
         set_threads(job.threads)
-    if job.method == "demon":
+    if method(job.method).runs_chain:
         from demon_lab.core.execution import global_rank
         from demon_lab.pipeline.stages.training import prepare_chain
 
@@ -125,7 +126,7 @@ def _train_and_evaluate(cfg: DictConfig, tracker, run_id: str) -> dict[str, Any]
     scored, and the results logged and printed (:func:`_record`)."""
     from demon_lab.pipeline.evaluate import evaluate_test_sets
 
-    chain, stages, figures = _train(cfg, tracker, run_id) if cfg.method in CHAIN_METHODS else (None, [], {})
+    chain, stages, figures = _train(cfg, tracker, run_id) if method(cfg.method).runs_chain else (None, [], {})
     refined = _has_refinement(cfg, [s.name for s in stages])
     results = evaluate_test_sets(cfg, chain, refined)
     summary = {r.name: r.summary for r in results}
@@ -174,7 +175,7 @@ def _train(cfg: DictConfig, tracker, run_id: str) -> tuple[Any, list, dict[str, 
 def _has_refinement(cfg: DictConfig, stages: list[str]) -> bool:
     """Whether the chain's refinement net is trained (its rows are scored): scheduled, or, for an
     untrained chain (``train=false``), in ``model.weights`` where the file is given."""
-    refined = cfg.method == "demon" and (not cfg.train or "refine" in stages)
+    refined = method(cfg.method).scores_passes and (not cfg.train or "refine" in stages)
     if refined and not cfg.train and cfg.model.weights:
         from demon_lab.pipeline.weights import read_nets
 
@@ -191,14 +192,14 @@ def _record(cfg: DictConfig, tracker, run_id: str, results: list, refined: bool)
     job = JobSettings.of(cfg)
     summary = {r.name: r.summary for r in results}
     tracker.log_metrics(run_id, {f"test/{name}/{k}": v for name, values in summary.items() for k, v in values.items()})
-    if cfg.method == "demon":
-        passes = [*range(job.iterations + 1), *(["refined"] if refined else [])]
-        if any(f"priors/{k}" in values for values in summary.values() for k in ("epe", "tran_deg")):
-            passes = ["priors", *passes]  # the profile's priors alone, before the chain's passes
+    scored = method(cfg.method)
+    priors = any(f"priors/{k}" in values for values in summary.values() for k in ("epe", "tran_deg"))
+    passes = scored.passes(job.iterations, refined, priors)  # (the profile's priors alone first)
+    if scored.scores_passes:
         what = f"{cfg.iterations} iterations{', oracle ' + str(cfg.oracle) if cfg.oracle else ''}"
         pictured = "refined depth" if refined else f"pass {cfg.iterations}"
     else:
-        passes, what, pictured = ["baseline"], f"method {cfg.method}", cfg.method
+        what, pictured = f"method {cfg.method}", cfg.method
     table = results_table(summary, passes)
     with tempfile.TemporaryDirectory() as tmp:
         root = Path(tmp)

@@ -25,6 +25,7 @@ from torch.utils.data import DataLoader
 
 from demon_lab.core import execution, metrics, scoring
 from demon_lab.nets.chain import ChainOutput, DeMoN
+from demon_lab.pipeline.methods import method
 from demon_lab.pipeline.settings import JobSettings
 
 log = logging.getLogger(__name__)
@@ -135,15 +136,16 @@ def evaluate_test_sets(cfg, chain: DeMoN | None, refined: bool) -> list[TestSetR
     from demon_lab.pipeline.config import instantiate
 
     job = JobSettings.of(cfg)
+    scored = method(job.method)
     keep = max(job.eval.visualize, job.eval.point_clouds)
-    if job.method == "demon" and chain is not None:  # on the device it trained on (Lightning hands it back on the CPU)
+    if scored.scores_passes and chain is not None:  # on the device it trained on (Lightning hands it back on the CPU)
         chain = chain.to(execution.evaluation_device(cfg))
     results = []
     for entry in job.data.test:
         dataset = instantiate(entry)
         log.info("evaluating on %s (%d pairs)", dataset.name, len(dataset))
         histogram = metrics.PixelHistogram()
-        if job.method == "demon":
+        if scored.scores_passes:
             rows, kept = evaluate_dataset(chain, dataset, job.iterations, job.oracle, job.eval.batch_size,
                                           job.eval.max_samples, keep=keep, refined=refined, histogram=histogram,
                                           precision=job.precision, channels_last=job.model.channels_last)
@@ -163,7 +165,7 @@ def _evaluate_baseline(job: JobSettings, entry, dataset, chain: DeMoN | None, ke
     from demon_lab.baselines import evaluate_baseline
 
     params = job.baseline
-    inputs = None if job.method == "base_mat_f" else baseline_inputs(entry, dataset, params.size)
+    inputs = None if method(job.method).at_chain_size else baseline_inputs(entry, dataset, params.size)
     return evaluate_baseline(job.method, dataset, params, chain=chain, iterations=job.iterations,
                              inputs=inputs, max_samples=job.eval.max_samples, keep=keep,
                              histogram=histogram)

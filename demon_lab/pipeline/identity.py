@@ -204,7 +204,9 @@ def semantic_config(cfg) -> dict[str, Any]:
     if isinstance(plain.get("data"), dict):
         plain["data"] = without_render_cache(plain["data"])
     plain["precision"] = normalize_precision(plain["precision"])
-    if plain.get("method") not in ("demon", "base_mat_f"):
+    from demon_lab.pipeline.methods import method
+
+    if not method(plain.get("method", "demon")).runs_chain:
         del plain["precision"]  # the methods that run no net compute the same in any precision
     else:
         plain.update(cpu_threads(cfg))  # nor with any thread count

@@ -27,14 +27,13 @@ from typing import Any
 
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
-from demon_lab.baselines.methods import METHODS as BASELINES
 from demon_lab.baselines.methods import BaselineConfig
 from demon_lab.core.losses import check_weights
 from demon_lab.nets.chain import ORACLES
 from demon_lab.pipeline.config import ConfigError, expect_choice, expect_flag, expect_int, expect_positive
+from demon_lab.pipeline.methods import METHODS
 from demon_lab.pipeline.schema import LR_SCHEDULES, ModelSpec, StageSpec, stage_spec
 
-METHODS = ("demon", *BASELINES)
 ACCELERATORS = ("auto", "cpu", "gpu", "cuda", "mps")
 TRACKING_SCHEMES = ("sqlite", "http", "https", "postgresql", "mysql", "mssql", "file", "databricks")
 SYNTHETIC_SOURCE = "demon_lab.data.datasets.SyntheticDataset"
@@ -333,7 +332,7 @@ class JobSettings(Section):
     """The whole job: its own keys (checked first), then a section per group."""
 
     seed: int = setting(Int(0))
-    method: str = setting(Choice(METHODS))
+    method: str = setting(Choice(tuple(METHODS)))
     iterations: int = setting(Int(0))
     oracle: str | None = setting(Choice(ORACLES))
     precision: int | str = setting(Precision())

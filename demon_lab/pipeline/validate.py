@@ -15,6 +15,7 @@ from pathlib import Path
 from omegaconf import DictConfig, OmegaConf
 
 from demon_lab.pipeline.config import ConfigError
+from demon_lab.pipeline.methods import method
 from demon_lab.pipeline.settings import JobSettings
 
 PATH_KEYS = ("path", "root")
@@ -30,14 +31,9 @@ def _source_key(node: DictConfig, key: str, where: str) -> str:
     return where
 
 
-CHAIN_METHODS = ("demon", "base_mat_f")
-"""The methods that run the DeMoN chain (``base_mat_f`` reads its flow): they train what the stage
-cache lacks."""
-
-
 def _trains(cfg: DictConfig) -> bool:
     """Whether the job will train a stage (and so read its training data)."""
-    if not (cfg.train and cfg.method in CHAIN_METHODS):
+    if not (cfg.train and method(cfg.method).runs_chain):
         return False
     from demon_lab.pipeline.stages.schedule import stage_dirs
 
@@ -63,7 +59,7 @@ def _model_files(job: JobSettings) -> None:
     weights = model.weights
     if not weights:
         return
-    if job.method not in CHAIN_METHODS:
+    if not method(job.method).runs_chain:
         raise ConfigError(f"model.weights: method={job.method} runs no DeMoN chain; leave model.weights unset")
     if not Path(str(weights)).is_file():
         raise ConfigError(f"model.weights: {weights}: no such file")
@@ -103,7 +99,7 @@ def _execution(job: JobSettings) -> None:
     platform cannot run them."""
     from demon_lab.core import execution
 
-    if job.method not in CHAIN_METHODS:
+    if not method(job.method).runs_chain:
         return
     device = execution.resolve_accelerator(job.trainer.accelerator)
     problem = execution.precision_problem(job.precision, device)

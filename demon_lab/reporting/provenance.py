@@ -24,6 +24,7 @@ from typing import Any
 import pandas as pd
 
 from demon_lab.pipeline.identity import digest, is_semantic
+from demon_lab.pipeline.methods import METHODS
 from demon_lab.pipeline.schema import PRIOR_KEYS
 from demon_lab.reporting.archive import IMPORTED_FROM
 from demon_lab.reporting.tables import markdown_table
@@ -42,8 +43,6 @@ SHIPPED = {"profile": ("the cpu profile", DEMON), "learned": ("the learned desig
 compose it): ``profile`` is a scale's own design (``design`` unset): the cpu profile at the ``cpu``
 scale, DeMoN's design at the ``smoke`` and ``paper`` scales; ``learned`` is ``design=learned``."""
 COMMIT_TAG = "tags.mlflow.source.git.commit"
-CHAIN_METHODS = ("demon", "base_mat_f")
-"""The methods whose numbers come from the chain's nets (Base-Mat-F reads its flow)."""
 CLASSICAL = "no net (a classical method)"
 
 
@@ -112,7 +111,8 @@ def design_name(found: Mapping[str, str]) -> str:
 def run_design(params: Mapping[str, str]) -> str:
     """The design a run measures (its logged params): :func:`design_name` of its departures, or
     :data:`CLASSICAL` for a classical method whose numbers no net enters."""
-    return design_name(departures(params)) if params.get("method", "demon") in CHAIN_METHODS else CLASSICAL
+    runs_chain = params.get("method", "demon") not in METHODS or METHODS[params.get("method", "demon")].runs_chain
+    return design_name(departures(params)) if runs_chain else CLASSICAL
 
 
 def shipped(params: Mapping[str, str]) -> str | None:

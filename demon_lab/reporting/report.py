@@ -37,6 +37,7 @@ from pathlib import Path
 from typing import Any
 
 from demon_lab.core.metrics import column
+from demon_lab.pipeline.methods import METHODS
 from demon_lab.pipeline.tracking import TAG, version_tags
 from demon_lab.reporting.selection import (
     aggregate,
@@ -85,7 +86,7 @@ def experiment_spec(experiment: str, uri: str) -> dict[str, Any]:
         match = dict(zip(varying, values if isinstance(values, tuple) else (values,), strict=True))
         method, iterations = (field(group, k).iloc[0] for k in ("method", "iterations"))
         rows.append({"label": ", ".join(f"{k}={v}" for k, v in match.items()) or "every run", "match": match,
-                     "metrics": f"it{iterations}" if method == "demon" else ""})
+                     "metrics": METHODS[method].summary_metrics(iterations) if method in METHODS else ""})
     names = sorted({c.split("/")[1] for c in finished.columns if c.startswith("metrics.test/")})
     return {"name": f"experiment_{experiment}", "title": f"The runs of experiment {experiment}", "runs": [],
             "command": f"python -m demon_lab.report --experiment {experiment}",
