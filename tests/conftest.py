@@ -137,3 +137,13 @@ def random_scene(batch: int, height: int, width: int, dtype=torch.float64, seed:
 def rotation_about(axis, degrees: float) -> np.ndarray:
     axis = np.asarray(axis, dtype=np.float64)
     return axis / np.linalg.norm(axis) * math.radians(degrees)
+
+
+@pytest.fixture(scope="module")
+def rendered():
+    """A synthetic sample with its scene and cameras (for exact checks against the renderer), rendered once per
+    test module that asks for it."""
+    from demon_lab.data import synthetic
+    from tests.data_helpers import SIZE
+
+    return synthetic.render_pair("synthetic_sun3d", 7, SIZE, supersample=1, return_scene=True)

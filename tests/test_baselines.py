@@ -286,7 +286,7 @@ def test_a_baseline_job_reads_its_pairs_at_baseline_size(sun3d_test_pairs, monke
     from omegaconf import OmegaConf, open_dict
 
     from demon_lab.pipeline import evaluate
-    from tests.test_pipeline import compose_config
+    from tests.jobs import compose_config
 
     low, _, _ = sun3d_test_pairs
     seen = []

@@ -311,9 +311,9 @@ def test_demon_test_files_run_the_converted_weights_into_mlflow(released, tmp_pa
     are named, and the run lands in MLflow."""
     from demon_lab_test_files import write_demon_test_files
     from mlflow.tracking import MlflowClient
-    from test_pipeline import compose_config
 
     from demon_lab.app.job import run
+    from tests.jobs import compose_config
 
     root = tmp_path / "testdata"
     write_demon_test_files(root, ["sun3d_test.h5", "nyu2_test.h5"])

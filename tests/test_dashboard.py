@@ -12,7 +12,7 @@ import pytest
 
 from demon_lab.reporting import dashboard
 from tests.conftest import free_port
-from tests.test_pipeline import cli, client, smoke_overrides
+from tests.jobs import cli, client, smoke_overrides
 
 pytestmark = pytest.mark.dashboard
 PANEL = 'data-component-id="mlflow.assistant.chat_panel'

@@ -10,7 +10,6 @@ import math
 import pytest
 import torch
 from conftest import random_scene
-from test_pipeline import DEMON_DESIGN, client, compose_config, smoke_overrides
 
 from demon_lab.core import execution, loss_maps, losses, warping
 from demon_lab.core import geometry as geo
@@ -19,6 +18,7 @@ from demon_lab.pipeline.config import ConfigError
 from demon_lab.pipeline.identity import run_key
 from demon_lab.pipeline.stages.schedule import stage_dirs
 from demon_lab.pipeline.validate import validate
+from tests.jobs import DEMON_DESIGN, client, compose_config, smoke_overrides
 
 
 def test_precision_names_are_lightnings():

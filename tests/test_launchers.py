@@ -11,7 +11,7 @@ from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
 from demon_lab.__main__ import CONF, sweep_jobs
-from tests.test_pipeline import SWEPT
+from tests.test_config_checks import SWEPT
 
 LAUNCHERS = {
     "basic": "hydra._internal.core_plugins.basic_launcher.BasicLauncher",

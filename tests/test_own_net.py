@@ -112,7 +112,7 @@ def test_a_stage_trains_the_net_of_its_slot_and_the_chain_evaluates_with_it(own_
     """A smoke job with a net of one's own in dm1 trains it (its weights move), caches it under its stage,
     and evaluates the chain with it; the stage's weights file holds it by the slot's name."""
     from demon_lab.app.job import run
-    from tests.test_pipeline import smoke_overrides
+    from tests.jobs import smoke_overrides
 
     name, _ = own_module
     cfg = _compose(*smoke_overrides(tmp_path, "threads=1", "schedule.until=dm1", "iterations=0",

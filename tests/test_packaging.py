@@ -96,7 +96,8 @@ def test_a_wheel_installed_elsewhere_runs_the_smoke_job_the_report_and_tests(tmp
     assert study.returncode == 0, study.stderr[-2000:]  # no runs of that study here: a report that lists them
     assert "missing" in (work / "reports" / "iterations.md").read_text()
     tests = run("-m", "pytest", "-q", "-p", "no:cacheprovider", "--import-mode=append", f"--rootdir={work}",
-                str(ROOT / "tests" / "test_identity.py"), str(ROOT / "tests" / "test_data.py"), "-k",
+                str(ROOT / "tests" / "test_identity.py"), *(str(ROOT / "tests" / f"test_{name}.py") for name in
+                                                             ("readers", "mixture", "data_stats")), "-k",
                 "sun3d_pair or pair_folder or data_config or data_stats", timeout=900)
     assert tests.returncode == 0 and " passed" in tests.stdout, tests.stdout[-3000:]
 

@@ -11,7 +11,7 @@ import time
 import pytest
 
 from tests.conftest import free_port
-from tests.test_pipeline import cli, client, smoke_overrides
+from tests.jobs import cli, client, smoke_overrides
 
 WRITER = """
 import sys, time

@@ -12,13 +12,13 @@ import numpy as np
 import pytest
 import torch
 from conftest import table_rows
-from test_pipeline import cli, client, compose_config, smoke_overrides
 
 from demon_lab.__main__ import check
 from demon_lab.core import geometry as geo
 from demon_lab.core import metrics, warping
 from demon_lab.nets import DeMoN
 from demon_lab.nets.chain import depth_motion_net_inputs, flow_net_inputs
+from tests.jobs import cli, client, compose_config, smoke_overrides
 
 K = torch.tensor([[0.89115971, 1.18821287, 0.5, 0.5]])
 

@@ -15,7 +15,7 @@ import torch
 
 from demon_lab.pipeline.stages.cache import CheckpointError, atomic_torch_save, load_checkpoint
 from demon_lab.pipeline.tracking import version_tags
-from tests.test_pipeline import cli, client, compose_config, smoke_overrides
+from tests.jobs import cli, client, compose_config, smoke_overrides
 
 WRITER = """
 import sys, torch
