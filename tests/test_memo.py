@@ -8,7 +8,7 @@ import torch
 from demon_lab.core import losses
 from demon_lab.nets.chain import DeMoN
 from demon_lab.pipeline.stages.memo import FrozenMemo
-from tests.test_nets_losses import _preset, _stage_batch
+from tests.test_losses import _preset, _stage_batch
 
 
 class Counted:
