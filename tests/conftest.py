@@ -143,7 +143,8 @@ def rotation_about(axis, degrees: float) -> np.ndarray:
 def rendered():
     """A synthetic sample with its scene and cameras (for exact checks against the renderer), rendered once per
     test module that asks for it."""
+    from data_helpers import SIZE
+
     from demon_lab.data import synthetic
-    from tests.data_helpers import SIZE
 
     return synthetic.render_pair("synthetic_sun3d", 7, SIZE, supersample=1, return_scene=True)

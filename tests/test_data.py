@@ -9,6 +9,7 @@ import cv2
 import numpy as np
 import pytest
 import torch
+from data_helpers import SIZE, _flow_of, _photometric_error
 
 from demon_lab.core import geometry as geo
 from demon_lab.data import sample as smp
@@ -18,7 +19,6 @@ from demon_lab.data.datasets import (
 from demon_lab.data.readers import (
     middlebury_motorcycle,
 )
-from tests.data_helpers import SIZE, _flow_of, _photometric_error
 
 
 def test_sample_keys_shapes_and_dtypes(rendered):

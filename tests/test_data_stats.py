@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 import torch
 from conftest import SUN3D_PAIR
+from data_helpers import _photometric_error
 
 from demon_lab.core import geometry as geo
 from demon_lab.data import sample as smp
@@ -16,7 +17,6 @@ from demon_lab.data import synthetic
 from demon_lab.data.datasets import (
     PairFolderDataset,
 )
-from tests.data_helpers import _photometric_error
 
 
 def _run_stats(*args):

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 import torch
 from conftest import SUN3D_PAIR
+from data_helpers import SIZE, _photometric_error, _pixel_K, _view_of
 
 from demon_lab.core import geometry as geo
 from demon_lab.data import sample as smp
@@ -24,7 +25,6 @@ from demon_lab.data.readers import (
     write_demon_h5,
     write_tum_sequence,
 )
-from tests.data_helpers import SIZE, _photometric_error, _pixel_K, _view_of
 
 
 def test_sun3d_pair_folder_reader(sun3d_pair):

@@ -10,6 +10,7 @@ import sys
 import numpy as np
 import pytest
 import torch
+from data_helpers import SIZE, _photometric_error
 
 from demon_lab.core import geometry as geo
 from demon_lab.data import synthetic
@@ -17,7 +18,6 @@ from demon_lab.data.datasets import (
     SPLIT_SEEDS,
     SyntheticDataset,
 )
-from tests.data_helpers import SIZE, _photometric_error
 
 TABLE1 = {"synthetic_scenes11": (3.3, 5.3), "synthetic_sun3d": (10.6, 5.2), "synthetic_mvs": (34.3, 28.9)}
 """The supplementary's Table 1: each preset's mean rotation (degrees) and triangulation angle."""

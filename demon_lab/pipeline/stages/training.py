@@ -15,6 +15,7 @@ import re
 import time
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
+from typing import Any
 
 import lightning as L
 from omegaconf import DictConfig
@@ -117,23 +118,7 @@ def train_stage(cfg: DictConfig, chain: DeMoN, stage: StageDir, logger: L.pytorc
     datamodule = build_datamodule(cfg, job, batch, spec.steps * batch, skip=start_step * batch,
                                   **spec.curriculum(), priors=priors,
                                   pin_memory=resolve_accelerator(job.trainer.accelerator) == "cuda")
-    checkpoint = L.pytorch.callbacks.ModelCheckpoint(
-        dirpath=stage.path, filename="step{step}", save_last=True, save_top_k=0,
-        every_n_train_steps=max(1, job.scale.checkpoint_every), auto_insert_metric_name=False)
-    callbacks: list = [checkpoint]
-    keep = None
-    if (logger is not None or spec.keep_best) and job.data.val and global_rank(cfg) == 0:
-        from demon_lab.pipeline.config import instantiate
-        from demon_lab.pipeline.stages.validation import KeepBest, StageValidation
-
-        scorer = StageValidation(spec, [instantiate(e) for e in job.data.val],
-                                 job.tracking.val_every_n_steps if logger is not None else 0)
-        callbacks.append(scorer)
-        if spec.keep_best:
-            keep = KeepBest(scorer, spec.best_metric, spec.keep_best, stage.path / "best.pt", spec.trained_nets())
-            callbacks.append(keep)
-    clock = LoopClock()
-    callbacks.append(clock)
+    callbacks, keep, clock = _stage_callbacks(cfg, job, spec, stage, logger)
     profiler = L.pytorch.profilers.SimpleProfiler() if job.trainer.profile else None
     trainer = _trainer(job, spec.steps, logger=logger if logger is not None else False, callbacks=callbacks,
                        enable_progress_bar=progress, profiler=profiler)
@@ -154,22 +139,50 @@ def train_stage(cfg: DictConfig, chain: DeMoN, stage: StageDir, logger: L.pytorc
                  kept.get(f"keep_best_{keep.metric}", float("nan")), kept["keep_best_seconds"])
     if global_rank(cfg) == 0:
         stage.save({net: plain_state(getattr(chain, net)) for net in spec.trained_nets()})
-    steps_done = spec.steps - start_step
-    figures = {"seconds": seconds, "steps_per_second": steps_done / max(seconds, 1e-9), "resumed_from_step": start_step,
-               **{f"final/{k}": v for k, v in module.last_terms.items()}, **kept}
-    if (rate := loop_rate(clock.ends)) is not None:
-        figures["loop_steps_per_second"] = rate
-    if rendered:
-        figures.update(fresh_scenes_rendered=rendered, fresh_scenes_seconds=render_seconds)
-    if profiler is not None:
-        figures.update(loop_parts(profiler.recorded_durations, seconds))
-    if module.memo is not None and module.memo.hits + module.memo.misses:
-        figures["reuse_frozen_hits"] = module.memo.hits / (module.memo.hits + module.memo.misses)
+    figures = {"seconds": seconds, "steps_per_second": (spec.steps - start_step) / max(seconds, 1e-9),
+               "resumed_from_step": start_step, **{f"final/{k}": v for k, v in module.last_terms.items()}, **kept,
+               **_loop_figures(clock, profiler, module, seconds),
+               **({"fresh_scenes_rendered": rendered, "fresh_scenes_seconds": render_seconds} if rendered else {})}
     # The trainer and the module refer to each other: collect them (and the loader's memo of frozen
     # outputs) now rather than let every stage of a job keep its own until the next GC pass.
     del trainer, module, datamodule
     gc.collect()
     return _logged(cfg, logger, figures, spec.steps)
+
+
+def _stage_callbacks(cfg: DictConfig, job: JobSettings, spec, stage: StageDir, logger) -> tuple[list, Any, LoopClock]:
+    """A stage's callbacks: its checkpoints, its held-apart scoring (where it logs or keeps its best nets;
+    rank 0 only) and ``keep_best`` (None without it), and the clock of its loop."""
+    checkpoint = L.pytorch.callbacks.ModelCheckpoint(
+        dirpath=stage.path, filename="step{step}", save_last=True, save_top_k=0,
+        every_n_train_steps=max(1, job.scale.checkpoint_every), auto_insert_metric_name=False)
+    callbacks: list = [checkpoint]
+    keep = None
+    if (logger is not None or spec.keep_best) and job.data.val and global_rank(cfg) == 0:
+        from demon_lab.pipeline.config import instantiate
+        from demon_lab.pipeline.stages.validation import KeepBest, StageValidation
+
+        scorer = StageValidation(spec, [instantiate(e) for e in job.data.val],
+                                 job.tracking.val_every_n_steps if logger is not None else 0)
+        callbacks.append(scorer)
+        if spec.keep_best:
+            keep = KeepBest(scorer, spec.best_metric, spec.keep_best, stage.path / "best.pt", spec.trained_nets())
+            callbacks.append(keep)
+    clock = LoopClock()
+    return [*callbacks, clock], keep, clock
+
+
+def _loop_figures(clock: LoopClock, profiler, module, seconds: float) -> dict[str, float]:
+    """What a stage's loop logs besides its time: its rate once running, its largest parts
+    (``trainer.profile``) and the hit rate of the frozen nets' memo (``trainer.reuse_frozen``)."""
+    figures = {}
+    if (rate := loop_rate(clock.ends)) is not None:
+        figures["loop_steps_per_second"] = rate
+    if profiler is not None:
+        figures.update(loop_parts(profiler.recorded_durations, seconds))
+    if module.memo is not None and module.memo.hits + module.memo.misses:
+        figures["reuse_frozen_hits"] = module.memo.hits / (module.memo.hits + module.memo.misses)
+    return figures
 
 
 def _render_fresh_scenes(datamodule) -> tuple[int, float]:
