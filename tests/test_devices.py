@@ -17,7 +17,8 @@ from torch.utils.data import default_collate
 from demon_lab.core import execution, loss_maps, losses, warping
 from demon_lab.core import geometry as geo
 from demon_lab.nets.chain import DeMoN
-from demon_lab.pipeline.stages.modules import DepthMotionStage, FlowStage
+from demon_lab.pipeline.stages.base import StageModule
+from demon_lab.pipeline.stages.kinds import DepthMotionStage, FlowStage
 
 WEIGHTS = losses.preset("released_code")
 
@@ -149,8 +150,8 @@ def test_a_mixed_precision_training_step_on_the_device_is_close_to_float32(devic
     for name in ("32-true", precision):
         torch.manual_seed(4)
         chain = DeMoN("v1", 0.125, (64, 64)).to(device)
-        stages = [FlowStage(chain, weights=WEIGHTS, steps=10, lr=1e-4, net="flow1"),
-                  DepthMotionStage(chain, weights=WEIGHTS, steps=10, lr=1e-4, net="dm1")]
+        stages = [StageModule(chain, FlowStage(name="flow1", steps=10, lr=1e-4, net="flow1"), weights=WEIGHTS),
+                  StageModule(chain, DepthMotionStage(name="dm1", steps=10, lr=1e-4, net="dm1"), weights=WEIGHTS)]
         out = []
         for stage in stages:
             stage.freeze_upstream()  # (the stages share one chain: as on_fit_start does)
@@ -185,7 +186,8 @@ def test_channels_last_changes_the_layout_not_the_result(device):
     for channels_last in (False, True):
         torch.manual_seed(5)
         chain = execution.prepare_nets(DeMoN("v1", 0.125, (64, 64)).to(device), channels_last=channels_last)
-        stage = FlowStage(chain, weights=WEIGHTS, steps=10, lr=1e-4, net="flow1", channels_last=channels_last)
+        stage = StageModule(chain, FlowStage(name="flow1", steps=10, lr=1e-4, net="flow1"), weights=WEIGHTS,
+                            channels_last=channels_last)
         b = stage.on_after_batch_transfer(dict(batch), 0)
         assert b["image1"].is_contiguous(memory_format=torch.channels_last) == channels_last
         assert chain.flow1.conv1.y.conv.weight.is_contiguous(memory_format=torch.channels_last) == channels_last

@@ -133,6 +133,14 @@ def _stage_batch() -> dict:
     return default_collate([{k: v for k, v in ds[i].items() if k != "id"} for i in range(2)])
 
 
+def _module(chain, spec, **options):
+    """The LightningModule that trains ``spec`` (a stage of its kind) on ``chain``, with the released code's
+    loss weights."""
+    from demon_lab.pipeline.stages.base import StageModule
+
+    return StageModule(chain, spec, weights=_preset("released_code"), **options)
+
+
 def _terms_at(stage, batch, gt, steps) -> dict[int, dict]:
     """The stage's loss terms on ``batch`` with its global step at each of ``steps``."""
     from unittest import mock
@@ -146,11 +154,11 @@ def _terms_at(stage, batch, gt, steps) -> dict[int, dict]:
 
 @pytest.mark.parametrize("sig_start", [0.0, 0.5, 1.0])
 def test_flow_stage_sig_terms_start_at_sig_start(sig_start):
-    from demon_lab.pipeline.stages.modules import FlowStage
+    from demon_lab.pipeline.stages.kinds import FlowStage
 
     torch.manual_seed(0)
     chain = DeMoN("v1", width=0.0625, size=(64, 64))
-    stage = FlowStage(chain, weights=_preset("released_code"), steps=300, lr=1e-3, net="flow1", sig_start=sig_start)
+    stage = _module(chain, FlowStage(name="flow1", steps=300, lr=1e-3, net="flow1", sig_start=sig_start))
     batch = _stage_batch()
     terms = _terms_at(stage, batch, losses.ground_truth(batch), (0, 100, 149, 151, 250, 299))
     sig = {step: t["flow2_sig"] for step, t in terms.items()}
@@ -214,13 +222,12 @@ def test_the_depth_sig_terms_keep_their_eps_and_ramp():
 def test_flow_stage_level5_terms_fade_over_level5_fade(fade):
     """DeMoN fades the level-5 terms out over the first third of a flow stage; ``level5_fade`` sets
     that fraction (3: at the stage's end the term is still at 1 - (1/3)^2 of its weight)."""
-    from demon_lab.pipeline.stages.modules import FlowStage
+    from demon_lab.pipeline.stages.kinds import FlowStage
 
     torch.manual_seed(0)
     chain = DeMoN("v1", width=0.0625, size=(64, 64))
     kwargs = {} if fade is None else {"level5_fade": fade}
-    stage = FlowStage(chain, weights=_preset("released_code"), steps=300, lr=1e-3, net="flow1", sig_start=1.0,
-                      **kwargs)
+    stage = _module(chain, FlowStage(name="flow1", steps=300, lr=1e-3, net="flow1", sig_start=1.0, **kwargs))
     batch = _stage_batch()
     terms = _terms_at(stage, batch, losses.ground_truth(batch), (0, 50, 99, 100, 150, 299))
     level5 = {step: t.get("flow5", 0.0) for step, t in terms.items()}
@@ -238,12 +245,11 @@ def test_depth_motion_stage_is_fed_ground_truth_flow_for_gt_flow_warmup(warmup):
     from unittest import mock
 
     from demon_lab.nets.chain import ground_truth_inputs
-    from demon_lab.pipeline.stages.modules import DepthMotionStage
+    from demon_lab.pipeline.stages.kinds import DepthMotionStage
 
     torch.manual_seed(0)
     chain = DeMoN("v1", width=0.0625, size=(64, 64))
-    stage = DepthMotionStage(chain, weights=_preset("released_code"), steps=300, lr=1e-3, net="dm1",
-                             gt_flow_warmup=warmup)
+    stage = _module(chain, DepthMotionStage(name="dm1", steps=300, lr=1e-3, net="dm1", gt_flow_warmup=warmup))
     batch = _stage_batch()
     pair = torch.cat([batch["image1"], batch["image2"]], 1)
     truth = ground_truth_inputs(batch, batch["intrinsics"]).flow
@@ -273,12 +279,11 @@ def test_depth_motion_stage_is_fed_ground_truth_flow_for_gt_flow_warmup(warmup):
 def test_iterative_stage_flow_sig_terms_start_at_sig_start(sig_start):
     """DeMoN's iterative stage starts at full weights (sig_start 0); with sig_start the flow sig
     terms are 0 before that fraction of the stage and at full weight after; depth-sig unaffected."""
-    from demon_lab.pipeline.stages.modules import IterativeStage
+    from demon_lab.pipeline.stages.kinds import IterativeStage
 
     torch.manual_seed(0)
     chain = DeMoN("v1", width=0.0625, size=(64, 64))
-    stage = IterativeStage(chain, weights=_preset("released_code"), steps=300, lr=1e-3, queue_size=0,
-                           sig_start=sig_start)
+    stage = _module(chain, IterativeStage(name="iterative", steps=300, lr=1e-3, queue_size=0, sig_start=sig_start))
     for step, terms in _terms_at(stage, _stage_batch(), None, (0, 149, 151, 299)).items():
         on = step >= sig_start * 300
         assert (terms["flow2_sig"] > 0) == on and (terms["conf2_sig"] > 0) == on

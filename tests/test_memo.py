@@ -8,7 +8,7 @@ import torch
 from demon_lab.core import losses
 from demon_lab.nets.chain import DeMoN
 from demon_lab.pipeline.stages.memo import FrozenMemo
-from tests.test_losses import _preset, _stage_batch
+from tests.test_losses import _module, _stage_batch
 
 
 class Counted:
@@ -55,12 +55,12 @@ def test_the_memo_lets_the_least_recently_read_rows_go_past_its_size_limit():
 
 
 STAGES = {
-    "flow1": ("FlowStage", dict(net="flow1")),
-    "flow2": ("FlowStage", dict(net="flow2")),
-    "dm1": ("DepthMotionStage", dict(net="dm1")),
-    "dm2": ("DepthMotionStage", dict(net="dm2")),
-    "iterative": ("IterativeStage", dict(queue_size=0)),
-    "refine": ("RefineStage", dict(iterations=2)),
+    "flow1": ("flow", dict(net="flow1")),
+    "flow2": ("flow", dict(net="flow2")),
+    "dm1": ("depth_motion", dict(net="dm1")),
+    "dm2": ("depth_motion", dict(net="dm2")),
+    "iterative": ("iterative", dict(queue_size=0)),
+    "refine": ("refine", dict(iterations=2)),
 }
 
 
@@ -70,7 +70,7 @@ def test_every_stage_kind_computes_the_same_loss_from_the_memo_and_reads_a_seen_
     """With ``reuse_frozen`` a stage's loss is the one it computes without (on a batch of pairs it
     has not seen the memo computes the whole batch at once, and at the next draw reads those rows
     back), and a pair seen before is not computed again."""
-    from demon_lab.pipeline.stages import modules
+    from demon_lab.pipeline.stages.kinds import STAGE_SPECS
 
     options = (dict(flow1_prior="dis", dm1_prior="ransac", flow2_prior="previous", dm2_prior="previous")
                if priors else {})
@@ -84,9 +84,9 @@ def test_every_stage_kind_computes_the_same_loss_from_the_memo_and_reads_a_seen_
         with torch.no_grad():
             return {k: float(v) for k, v in module.stage_loss(batch, gt)[1].items()}
 
-    plain = terms(getattr(modules, kind)(chain, weights=_preset("released_code"), steps=300, lr=1e-3, **kwargs))
-    memoised = getattr(modules, kind)(chain, weights=_preset("released_code"), steps=300, lr=1e-3,
-                                      reuse_frozen=True, **kwargs)
+    spec = STAGE_SPECS[kind](name=stage, steps=300, lr=1e-3, **kwargs)
+    plain = terms(_module(chain, spec))
+    memoised = _module(chain, spec, reuse_frozen=True)
     first, second = terms(memoised), terms(memoised)
     assert first == plain and second == plain
     if stage == "flow1" and not priors:  # flow1 alone has no frozen computation without the DIS prior

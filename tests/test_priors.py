@@ -16,7 +16,8 @@ from demon_lab.core import losses
 from demon_lab.data.datasets import SyntheticDataset
 from demon_lab.nets.chain import DeMoN
 from demon_lab.pipeline.stages import priors as pair_priors
-from demon_lab.pipeline.stages.modules import DepthMotionStage, FlowStage, IterativeStage, RefineStage
+from demon_lab.pipeline.stages.base import StageModule
+from demon_lab.pipeline.stages.kinds import DepthMotionStage, FlowStage, IterativeStage, RefineStage
 
 SIZE = (96, 128)  # the cpu scale's, where the 5-point motion finds its solutions
 
@@ -97,11 +98,11 @@ def test_a_stage_computes_the_same_with_its_pairs_priors_as_without(scenes, kind
     plain = _batch(samples)
     chain = _chain()
     with_priors = {**plain, **default_collate(pair_priors.PairPriors.of(chain).compute(samples))}
-    w = dict(weights=losses.preset("released_code"), steps=100, lr=1e-4)
-    make = {"flow1": lambda c: FlowStage(c, net="flow1", **w), "dm1": lambda c: DepthMotionStage(c, net="dm1", **w),
-            "flow2": lambda c: FlowStage(c, net="flow2", **w), "dm2": lambda c: DepthMotionStage(c, net="dm2", **w),
-            "iterative": lambda c: IterativeStage(c, queue_size=4, **w),
-            "refine": lambda c: RefineStage(c, iterations=1, **w)}[kind]
+    w = dict(name=kind, steps=100, lr=1e-4)
+    spec = {"flow1": FlowStage(net="flow1", **w), "dm1": DepthMotionStage(net="dm1", **w),
+            "flow2": FlowStage(net="flow2", **w), "dm2": DepthMotionStage(net="dm2", **w),
+            "iterative": IterativeStage(queue_size=4, **w), "refine": RefineStage(iterations=1, **w)}[kind]
+    make = lambda c: StageModule(c, spec, weights=losses.preset("released_code"))  # noqa: E731
     results = []
     for batch in (plain, with_priors):
         if batch is with_priors:
@@ -155,7 +156,7 @@ def test_held_apart_scoring_reads_each_pairs_priors_once_and_scores_what_the_cha
 
     with initialize_config_dir(str(resources.CONF), version_base="1.3"):
         cfg = compose("config", ["scale=smoke"])
-    from demon_lab.pipeline.schema import stage_spec
+    from demon_lab.pipeline.stages.kinds import stage_spec
 
     chain = _chain().eval()
     held_apart = SyntheticDataset("synthetic_sun3d", length=3, size=SIZE, split="val", cache_dir=False)

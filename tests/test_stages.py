@@ -1,9 +1,8 @@
-"""A stage as the job trains it: its kind's module, nets and scores, the options handed to it, its
+"""A stage as the job trains it: its kind's loss, nets and scores, the options handed to it, its
 curriculum, restarts, keep_best, and a killed stage resumed from its checkpoint."""
 
 from __future__ import annotations
 
-import inspect
 import math
 import os
 import signal
@@ -20,20 +19,17 @@ from demon_lab.__main__ import CONF
 from tests.jobs import client, compose_config, smoke_overrides
 
 
-def test_each_stage_kind_carries_its_module_nets_oracles_and_scores_and_the_rate_schedules_are_implemented():
+def test_each_stage_kind_carries_its_loss_nets_oracles_and_scores_and_the_rate_schedules_are_implemented():
     from demon_lab.core.losses import WEIGHT_KEYS
     from demon_lab.nets.chain import ORACLES
-    from demon_lab.pipeline.schema import LR_SCHEDULES, STAGE_SPECS
-    from demon_lab.pipeline.stages import modules
-    from demon_lab.pipeline.stages.base import StageModule, learning_rate
+    from demon_lab.pipeline.schema import LR_SCHEDULES
+    from demon_lab.pipeline.stages.base import learning_rate
+    from demon_lab.pipeline.stages.kinds import STAGE_SPECS, StageSpec
 
     nets = {"flow1", "dm1", "flow2", "dm2", "refine_net"}
-    for kind, spec in STAGE_SPECS.items():  # its module takes every option it sets
-        module = getattr(modules, spec.module)
-        assert issubclass(module, StageModule), kind
+    for kind, spec in STAGE_SPECS.items():  # each kind is one class: its own loss, nets, weights, oracles
+        assert issubclass(spec, StageSpec) and spec.loss is not StageSpec.loss, kind
         stage = spec(name=kind, steps=10, lr=1e-3)
-        assert set(stage.module_options()) <= set(inspect.signature(module).parameters) | {
-            "steps", "lr", "warmup_steps", "oracle"}, kind
         assert set(stage.trained_nets()) <= nets and set(stage.weight_keys()) <= set(WEIGHT_KEYS), kind
         assert set(spec.oracles) - {None} <= set(ORACLES), kind
     flow2 = STAGE_SPECS["flow"](name="flow2", steps=1, lr=1.0, net="flow2", sig_start=1.0)
@@ -71,7 +67,7 @@ def test_the_stages_train_the_chain_with_all_four_priors_and_under_the_depth_mot
 
 def test_train_stage_hands_the_probe_options_to_their_stages(tmp_path, monkeypatch):
     """A flow stage gets level5_fade, a depth-motion stage gt_flow_warmup, from the stage's config;
-    a stage without them gets DeMoN's values (its module's defaults)."""
+    a stage without them gets DeMoN's values (its kind's defaults)."""
     from demon_lab.pipeline.stages import training
     from demon_lab.pipeline.stages.schedule import build_chain, stage_dirs
 
@@ -80,34 +76,21 @@ def test_train_stage_hands_the_probe_options_to_their_stages(tmp_path, monkeypat
 
     given = {}
 
-    def capture(kind):
-        def make(chain, weights, **kwargs):
-            given[kind] = kwargs
-            raise Built
-        return make
+    def capture(chain, spec, **kwargs):
+        given[spec.kind] = spec
+        raise Built
 
-    from demon_lab.pipeline.schema import STAGE_SPECS
-    from demon_lab.pipeline.stages import modules
-    from demon_lab.pipeline.stages.modules import DepthMotionStage, FlowStage
-
-    for kind, spec in STAGE_SPECS.items():
-        monkeypatch.setattr(modules, spec.module, capture(kind))
+    monkeypatch.setattr(training, "StageModule", capture)
     with initialize_config_dir(CONF, version_base="1.3"):
         cfg = compose("config", ["scale=smoke", f"cache_dir={tmp_path}", "+schedule.stages.flow1.level5_fade=0.75",
                                  "+schedule.stages.dm1.gt_flow_warmup=0.4"])
         plain = compose("config", ["scale=smoke", f"cache_dir={tmp_path}"])
-    default = lambda module, key: inspect.signature(module).parameters[key].default  # noqa: E731
-    demon = {"flow": {"level5_fade": default(FlowStage, "level5_fade")},
-             "depth_motion": {"gt_flow_warmup": default(DepthMotionStage, "gt_flow_warmup")}}
-    assert demon == {"flow": {"level5_fade": 1 / 3}, "depth_motion": {"gt_flow_warmup": 0.0}}
-    for config, expect in ((cfg, {"flow": {"level5_fade": 0.75}, "depth_motion": {"gt_flow_warmup": 0.4}}),
-                           (plain, demon)):
+    for config, expect in ((cfg, (0.75, 0.4)), (plain, (1 / 3, 0.0))):  # (DeMoN's: a third, none)
         chain = build_chain(config)
         for stage in stage_dirs(config)[:2]:  # flow1, dm1
             with pytest.raises(Built):
                 training.train_stage(config, chain, stage, logger=None, progress=False)
-        assert {k: v for k, v in given["flow"].items() if k == "level5_fade"} == expect["flow"]
-        assert {k: v for k, v in given["depth_motion"].items() if k == "gt_flow_warmup"} == expect["depth_motion"]
+        assert (given["flow"].level5_fade, given["depth_motion"].gt_flow_warmup) == expect
 
 
 def test_train_stage_draws_its_samples_with_the_stage_curriculum(tmp_path, monkeypatch):
@@ -146,7 +129,8 @@ def test_a_flow1_stage_starts_on_fresh_2d_layers_and_trains_on_them(tmp_path, mo
     the flow net's every parameter gets a gradient from."""
     from demon_lab.data.datasets import LayersDataset
     from demon_lab.pipeline.stages import training
-    from demon_lab.pipeline.stages.modules import FlowStage
+    from demon_lab.pipeline.stages.base import StageModule
+    from demon_lab.pipeline.stages.kinds import FlowStage
     from demon_lab.pipeline.stages.schedule import build_chain, stage_dirs
 
     class Built(Exception):
@@ -173,7 +157,7 @@ def test_a_flow1_stage_starts_on_fresh_2d_layers_and_trains_on_them(tmp_path, mo
     steps, batch = int(cfg.schedule.stages.flow1.steps), int(cfg.data.batch_size)
     assert layered.lead_keys == round(0.5 * steps) * batch and plain.lead_keys == 0
     assert not any(isinstance(d, LayersDataset) for d in loaders[1].dataset.datasets)
-    module = FlowStage(chain, weights=dict(cfg.loss), steps=10, lr=1e-4)
+    module = StageModule(chain, FlowStage(name="flow1", steps=10, lr=1e-4), weights=dict(cfg.loss))
     pairs = torch.utils.data.default_collate([sources[-1][i] for i in range(2)])
     from demon_lab.core import losses
 

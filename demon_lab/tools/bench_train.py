@@ -19,6 +19,7 @@ design at the ``cpu`` scale (the profile, DeMoN's design, the learned design) an
 
 from __future__ import annotations
 
+import dataclasses
 import datetime as dt
 import subprocess
 import sys
@@ -78,8 +79,8 @@ def mid_stage(module) -> None:
     0): every ramped term at full weight, except the terms a stage never turns on (``sig_start: 1``),
     and flow1's flow, not ground truth, fed to dm1 (``gt_flow_warmup``)."""
     module.ramp = lambda duration, start=0.0: 0.0 if start >= 1 else 1.0
-    if hasattr(module, "gt_flow_warmup"):
-        module.gt_flow_warmup = 0.0
+    if hasattr(module.spec, "gt_flow_warmup"):
+        module.spec = dataclasses.replace(module.spec, gt_flow_warmup=0.0)
     module.memo = None
 
 

@@ -52,16 +52,19 @@ def batch_of(dims: Dims, n: int, device: torch.device) -> dict[str, torch.Tensor
 
 def _stage(kind: str, chain, dims: Dims):
     from demon_lab.core.losses import preset
-    from demon_lab.pipeline.stages.modules import DepthMotionStage, FlowStage, IterativeStage, RefineStage
+    from demon_lab.pipeline.stages.base import StageModule
+    from demon_lab.pipeline.stages.kinds import DepthMotionStage, FlowStage, IterativeStage, RefineStage
 
-    w = dict(weights=preset("released_code"), steps=1000, lr=1e-4)
+    w = dict(name=kind, steps=1000, lr=1e-4)
     if kind in ("flow1", "flow2"):
-        return FlowStage(chain, net=kind, **w)
-    if kind in ("dm1", "dm2"):
-        return DepthMotionStage(chain, net=kind, **w)
-    if kind == "iterative":
-        return IterativeStage(chain, queue_size=dims.batch - dims.new, **w)
-    return RefineStage(chain, iterations=3, **w)
+        spec = FlowStage(net=kind, **w)
+    elif kind in ("dm1", "dm2"):
+        spec = DepthMotionStage(net=kind, **w)
+    elif kind == "iterative":
+        spec = IterativeStage(queue_size=dims.batch - dims.new, **w)
+    else:
+        spec = RefineStage(iterations=3, **w)
+    return StageModule(chain, spec, weights=preset("released_code"))
 
 
 def step_rate(device: torch.device, dims: Dims, kind: str, precision: str, channels_last: bool = False,

@@ -1,6 +1,7 @@
-"""Training stages: one LightningModule per encoder-decoder stage of DeMoN's schedule
-(`training/v2/training.py`; docs/reference.md §5). Each holds the whole chain as a plain
-submodule; only the stage's own nets train, the upstream nets run frozen in eval mode, forward only.
+"""The LightningModule that trains a stage of DeMoN's schedule (`training/v2/training.py`;
+docs/reference.md §5), of whatever kind (:mod:`demon_lab.pipeline.stages.kinds`: the kind gives its
+loss, the nets it trains and its options). It holds the whole chain as a plain submodule; only the
+stage's own nets train, the upstream nets run frozen in eval mode, forward only.
 
 Optimiser as in DeMoN's training code: Adam (beta 0.9/0.999, eps 1e-6), weight decay on kernels,
 element-wise gradient clipping (the Trainer's ``gradient_clip_algorithm="value"``). Learning-rate schedules:
@@ -11,7 +12,7 @@ positions are not given, demon_lab puts them at 40, 60 and 80 % of the stage).
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 
 import lightning as L
 import torch
@@ -19,24 +20,10 @@ import torch
 from demon_lab.core import execution, losses
 from demon_lab.nets.chain import DeMoN, Prediction, downsample_image
 from demon_lab.pipeline.schema import LR_SCHEDULES
+from demon_lab.pipeline.stages.kinds import StageSpec, pair_priors
 from demon_lab.pipeline.stages.memo import FrozenMemo
 
 MULTISTEP_MILESTONES = (0.4, 0.6, 0.8)
-
-PRIOR_FIELDS = ("prior_flow", "prior_motion")
-"""The classical priors a training batch may carry, in :meth:`demon_lab.nets.chain.DeMoN.bootstrap`'s
-order (computed once per pair: :mod:`demon_lab.pipeline.stages.priors`)."""
-
-
-def pair_priors(batch: Mapping[str, torch.Tensor]) -> list[torch.Tensor]:
-    """The classical priors ``batch`` carries (:data:`PRIOR_FIELDS`, the leading ones it has)."""
-    given = []
-    for key in PRIOR_FIELDS:
-        if key not in batch:
-            break
-        given.append(batch[key])
-    return given
-
 FINAL_LR = 1e-6
 
 
@@ -53,35 +40,32 @@ def learning_rate(step: int, steps: int, base: float, schedule: str, warmup_step
 
 
 class StageModule(L.LightningModule):
-    """Common machinery: frozen upstream nets, optimiser, schedule, loss logging.
+    """A stage's training: frozen upstream nets, optimiser, schedule, loss logging; its kind's loss.
 
     Args:
         chain: the DeMoN chain (upstream nets already trained and loaded).
-        trained: names of the chain's nets this stage trains.
+        spec: the stage, an instance of its kind (its steps, rate, warm-up, the nets it trains, its loss).
         weights: a loss preset (:func:`demon_lab.core.losses.check_weights`).
-        steps, lr, lr_schedule, weight_decay: the optimisation of the stage.
-        warmup_steps: linear learning-rate warm-up (0: none, as DeMoN).
-        oracle: ground-truth inputs during training ('flow' for depth-motion stages,
-            'depth_motion' for flow stages of the iterative net), or None.
+        lr_schedule, weight_decay: the job's optimisation of every stage.
         channels_last: the batch's images in channels-last layout (the chain's nets already are:
             :func:`demon_lab.core.execution.prepare_nets`).
         reuse_frozen: what the frozen nets compute for a pair is computed once and read from a
             memo at the pair's next draws (:mod:`demon_lab.pipeline.stages.memo`).
     """
 
-    def __init__(self, chain: DeMoN, trained: Sequence[str], weights: Mapping[str, float], steps: int,
-                 lr: float, lr_schedule: str = "released", weight_decay: float = 0.0,
-                 oracle: str | None = None, warmup_steps: int = 0, channels_last: bool = False,
-                 reuse_frozen: bool = False):
+    def __init__(self, chain: DeMoN, spec: StageSpec, weights: Mapping[str, float], lr_schedule: str = "released",
+                 weight_decay: float = 0.0, channels_last: bool = False, reuse_frozen: bool = False):
         super().__init__()
-        self.chain = chain
-        self.trained = list(trained)
+        self.chain, self.spec = chain, spec
+        self.trained = list(spec.trained_nets())
         self.weights = losses.check_weights(weights)
-        self.steps, self.base_lr, self.lr_schedule = int(steps), float(lr), lr_schedule
-        self.weight_decay, self.oracle, self.warmup_steps = float(weight_decay), oracle, int(warmup_steps)
+        self.steps, self.base_lr, self.lr_schedule = int(spec.steps), float(spec.lr), lr_schedule
+        self.weight_decay, self.warmup_steps = float(weight_decay), int(spec.warmup_steps)
         learning_rate(0, self.steps, self.base_lr, lr_schedule)  # validates the schedule name
         self.channels_last = bool(channels_last)
         self.memo = FrozenMemo() if reuse_frozen else None
+        self.state: dict = {}
+        """What the kind carries from step to step (the iterative kind's queue): saved with a checkpoint."""
         self.freeze_upstream()
         self.last_terms: dict[str, float] = {}
 
@@ -126,7 +110,14 @@ class StageModule(L.LightningModule):
         return pair, downsample_image(batch["image2"]), batch["intrinsics"]
 
     def stage_loss(self, batch: Mapping[str, torch.Tensor], gt: dict) -> tuple[torch.Tensor, dict]:
-        raise NotImplementedError
+        """The kind's loss on ``batch`` and its terms (:meth:`demon_lab.pipeline.stages.kinds.StageSpec.loss`)."""
+        return self.spec.loss(self, batch, gt)
+
+    def on_save_checkpoint(self, checkpoint: dict) -> None:
+        self.spec.save_state(self.state, checkpoint)
+
+    def on_load_checkpoint(self, checkpoint: dict) -> None:
+        self.state = self.spec.load_state(checkpoint)
 
     def frozen(self, compute, *inputs: torch.Tensor) -> tuple[torch.Tensor, ...]:
         """``compute(*inputs)``, a computation of the frozen nets alone that returns a tuple of batch

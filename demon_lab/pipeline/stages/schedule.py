@@ -16,8 +16,9 @@ from omegaconf import DictConfig, OmegaConf
 from demon_lab.core.execution import normalize_precision, prepare_nets
 from demon_lab.nets.chain import DeMoN
 from demon_lab.pipeline.identity import cpu_threads, leave_out_neutral, model_identity, stage_key, without_render_cache
-from demon_lab.pipeline.schema import ModelSpec, stage_spec
+from demon_lab.pipeline.schema import ModelSpec
 from demon_lab.pipeline.stages.cache import CheckpointError, StageDir
+from demon_lab.pipeline.stages.kinds import stage_spec
 
 
 def scheduled_stages(cfg: DictConfig) -> list[str]:

@@ -27,10 +27,10 @@ from demon_lab.core.execution import (
     resolve_accelerator,
 )
 from demon_lab.nets.chain import DeMoN
-from demon_lab.pipeline.schema import FlowStageSpec
 from demon_lab.pipeline.settings import JobSettings
-from demon_lab.pipeline.stages import modules
+from demon_lab.pipeline.stages.base import StageModule
 from demon_lab.pipeline.stages.cache import StageDir, atomic_checkpoint_io, load_checkpoint
+from demon_lab.pipeline.stages.kinds import FlowStage
 from demon_lab.pipeline.stages.priors import PairPriors, PriorTable, warm_priors
 from demon_lab.pipeline.stages.schedule import build_chain, load_stage, stage_dirs
 
@@ -85,12 +85,11 @@ def build_datamodule(cfg: DictConfig, job: JobSettings, batch_size: int, samples
     return DemonDataModule(train, draws, num_workers=job.data.num_workers, pin_memory=pin_memory, fields=priors)
 
 
-def stage_module(job: JobSettings, chain: DeMoN, name: str) -> modules.StageModule:
+def stage_module(job: JobSettings, chain: DeMoN, name: str) -> StageModule:
     """The LightningModule that trains stage ``name`` of ``job``'s schedule on ``chain``."""
-    spec = job.stages[name]
-    return getattr(modules, spec.module)(chain, weights=dict(job.loss), lr_schedule=job.schedule.lr_schedule,
-                                         weight_decay=job.schedule.weight_decay, channels_last=job.model.channels_last,
-                                         reuse_frozen=job.trainer.reuse_frozen, **spec.module_options())
+    return StageModule(chain, job.stages[name], weights=dict(job.loss), lr_schedule=job.schedule.lr_schedule,
+                       weight_decay=job.schedule.weight_decay, channels_last=job.model.channels_last,
+                       reuse_frozen=job.trainer.reuse_frozen)
 
 
 def train_stage(cfg: DictConfig, chain: DeMoN, stage: StageDir, logger: L.pytorch.loggers.Logger | None,
@@ -108,7 +107,7 @@ def train_stage(cfg: DictConfig, chain: DeMoN, stage: StageDir, logger: L.pytorc
     module = stage_module(job, chain, stage.name)
     batch = spec.batch_size or job.data.batch_size
     resume = stage.last_checkpoint if stage.last_checkpoint.is_file() else None
-    if resume is None and isinstance(spec, FlowStageSpec) and spec.restarts is not None:
+    if resume is None and isinstance(spec, FlowStage) and spec.restarts is not None:
         resume = screen_restarts(cfg, job, chain, stage, module, logger, priors)
     start_step = _checkpoint_step(resume) if resume is not None else 0
     # A resumed stage continues the sample sequence where the checkpoint left it: same batches,
