@@ -190,3 +190,27 @@ def test_a_spec_of_one_design_extends_another_and_counts_only_runs_of_its_design
     (tmp_path / "bad.yaml").write_text(yaml.safe_dump({"extends": "study", "curves": ["nope"]}))
     with pytest.raises(report.ReportError, match=r"curves: expected a list of the spec's table names .*\['nope'\]"):
         report.load_spec("bad", tmp_path)
+
+
+def test_a_rows_config_digest_names_bundled_files_not_where_the_package_was_installed():
+    """The report's config digest follows the keys' rule (``identity.portable``): the runs of one row
+    logged from two installs share one digest, while a folder of the user's own is part of it; so every
+    committed report gives each row one digest."""
+    from pathlib import Path
+
+    from demon_lab.pipeline.identity import portable
+    from demon_lab.reporting.provenance import config_digest
+
+    pair = "demon_lab/data/real/sun3d_train_0.1m_to_0.2m_00000"
+    one = {"seed": "0", "model.width": "0.25", "data.real_pair": f"/work/env5/lib/python3.11/site-packages/{pair}"}
+    other = {**one, "seed": "1", "data.real_pair": f"/home/me/demon_lab/{pair}"}  # a checkout's bundled file
+    assert portable(one["data.real_pair"]) == "bundled:sun3d_train_0.1m_to_0.2m_00000"
+    assert config_digest(one) == config_digest(other)
+    assert config_digest({**one, "data.real_pair": "/home/me/pairs/sun3d_train_0.1m_to_0.2m_00000"}) != \
+        config_digest(one)
+    reports = sorted((Path(__file__).resolve().parents[1] / "reports").glob("*.csv"))
+    assert len(reports) > 5
+    for path in reports:
+        with open(path, newline="") as f:
+            digests = {r["config"] for r in csv.DictReader(f) if r.get("config")}
+        assert digests and not any("," in d for d in digests), path.name

@@ -105,12 +105,6 @@ def source_digest(cls: type) -> str:
     return hashlib.sha256(source.encode()).hexdigest()[:16]
 
 
-def plugin_identity(node: Mapping[str, Any]) -> dict[str, Any]:
-    """A slot's plug-in as keys hold it: its class, its arguments and the digest of its source."""
-    args = {k: v for k, v in node.items() if k != "_target_"}
-    return {"class": str(node["_target_"]), "args": args, "source": source_digest(plugin_class(node["_target_"]))}
-
-
 def check_plugin(slot: str, node: Any, prefix: str = "model.nets.") -> None:
     """One ValueError line where ``node`` is not null nor a mapping with a ``_target_`` that names an
     ``nn.Module`` class."""

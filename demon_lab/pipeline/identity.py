@@ -8,8 +8,9 @@ them:
   what it computes (:data:`NON_SEMANTIC`; where its scenes are cached: :func:`without_render_cache`);
   a FINISHED run with the same key is skipped.
 - stage key (:func:`stage_key`): what determines one training stage's weights (its description,
-  chained through the keys of its upstream stages: ``demon_lab.pipeline.stages.schedule.describe_stage``),
-  with the CPU threads it trains with (:func:`cpu_threads`).
+  :func:`describe_stage`, chained through the keys of its upstream stages), with the CPU threads it
+  trains with (:func:`cpu_threads`); a net of one's own by its class, arguments and source
+  (:func:`plugin_identity`).
 - sweep key (:func:`sweep_key`): a multirun's experiment and its result-changing overrides; the
   same sweep re-issued continues its MLflow parent run.
 
@@ -136,17 +137,24 @@ def is_semantic(key: str) -> bool:
     return not any(key == k or key.startswith(k + ".") for k in NON_SEMANTIC)
 
 
-def _portable(value: Any) -> Any:
+def portable(value: Any) -> Any:
     """``value`` with the paths of files that ship inside the package written as ``bundled:NAME``:
-    where the package is installed does not change what a job computes."""
+    where the package is installed does not change what a job computes. A bundled file is one under
+    this install's data folder (:data:`demon_lab.resources.DATA`) or under another install's, as a run
+    of another environment logged it (``.../demon_lab/data/real/NAME``). The keys and the reports'
+    config digests (:func:`demon_lab.reporting.provenance.config_digest`) follow this rule."""
     from demon_lab.resources import DATA
 
     if isinstance(value, dict):
-        return {k: _portable(v) for k, v in value.items()}
+        return {k: portable(v) for k, v in value.items()}
     if isinstance(value, list):
-        return [_portable(v) for v in value]
-    if isinstance(value, str) and value.startswith(str(DATA) + "/"):
-        return "bundled:" + value[len(str(DATA)) + 1:]
+        return [portable(v) for v in value]
+    if isinstance(value, str):
+        if value.startswith(str(DATA) + "/"):
+            return "bundled:" + value[len(str(DATA)) + 1:]
+        inside = "/" + "/".join(DATA.parts[-3:]) + "/"  # /demon_lab/data/real/
+        if inside in value and value.startswith("/"):
+            return "bundled:" + value.split(inside, 1)[1]
     return value
 
 
@@ -167,13 +175,11 @@ def model_identity(model: dict[str, Any]) -> dict[str, Any]:
     """A plain ``model`` config as keys hold it: its neutral options left out (:func:`leave_out_neutral`),
     without :data:`EXECUTION_KEYS` (which never change a key), a correlation front with its
     :data:`demon_lab.nets.blocks.CORRELATION_VERSION` (from 2 on), each net of one's own by its class,
-    arguments and source digest (:func:`demon_lab.nets.slots.plugin_identity`: an edit of its module
-    trains it again), and ``weights`` named by the file's content (``sha256:...``), not its path: a
+    arguments and source digest (:func:`plugin_identity`: an edit of its module trains it again), and
+    ``weights`` named by the file's content (``sha256:...``), not its path: a
     moved file keeps its keys, a changed one gets new ones."""
     model = {k: v for k, v in leave_out_neutral(model, "model.").items() if k not in EXECUTION_KEYS}
     if model.get("nets"):
-        from demon_lab.nets.slots import plugin_identity
-
         model["nets"] = {slot: plugin_identity(node) for slot, node in model["nets"].items()}
     if model.get("correlation") is not None:  # how the front computes (its rounding): the version since 1
         from demon_lab.nets.blocks import CORRELATION_VERSION
@@ -185,9 +191,69 @@ def model_identity(model: dict[str, Any]) -> dict[str, Any]:
     return {**model, "weights": describe(model["weights"])}
 
 
+def plugin_identity(node: Mapping[str, Any]) -> dict[str, Any]:
+    """A slot's plug-in as keys hold it: its class, its arguments and the digest of its source."""
+    from demon_lab.nets.slots import plugin_class, source_digest
+
+    args = {k: v for k, v in node.items() if k != "_target_"}
+    return {"class": str(node["_target_"]), "args": args, "source": source_digest(plugin_class(node["_target_"]))}
+
+
+def describe_stage(cfg, name: str, upstream: dict[str, str]) -> dict[str, Any]:
+    """Everything that determines the result of stage ``name`` of ``cfg``'s schedule (what its key
+    hashes: :func:`stage_key`), ``upstream`` the keys of the stages before it."""
+    from omegaconf import OmegaConf
+
+    from demon_lab.pipeline.stages.kinds import stage_spec
+
+    plain = lambda node: OmegaConf.to_container(node, resolve=True)  # noqa: E731
+    spec = stage_spec(cfg, name)
+    return {
+        "stage": name,
+        "stage_config": plain(cfg.schedule.stages[name]),
+        "optimisation": {k: cfg.schedule[k] for k in ("lr_schedule", "weight_decay", "grad_clip")},
+        "batch_size": spec.batch_size or cfg.data.batch_size,
+        "model": {**_stage_model(model_identity(plain(cfg.model)), name, list(cfg.schedule.stages)),
+                  "size": list(cfg.data.size)},  # weights by content
+        # Only the weights this stage's loss reads: ablations that change another stage's terms
+        # (no_normals for the flow stages, say, or no_sig for a flow stage without sig terms)
+        # share this stage.
+        "loss": {k: float(cfg.loss[k]) for k in spec.weight_keys()},
+        "train_data": without_render_cache(plain(cfg.data.train)),  # not where its scenes are cached
+        # the held-apart sets that choose the kept nets (keep_best; left out where the stage keeps its last)
+        **({"keep_best_on": without_render_cache(plain(cfg.data.val))} if spec.keep_best else {}),
+        "seed": cfg.seed,
+        "upstream": dict(upstream),
+        # the nets' precision where the stage trains (a stage of 0 steps keeps its nets as they are)
+        **leave_out_neutral({"precision": normalize_precision(cfg.precision)} if int(spec.steps) > 0 else {}),
+        # the CPU threads it trains with (their rounding parts the weights), but for the neutral 2
+        **(cpu_threads(cfg) if int(spec.steps) > 0 else {}),
+    }
+
+
+MODEL_OPTION_FROM = {"dm1_prior": "dm1", "flow2_prior": "flow2", "dm2_prior": "dm2"}
+"""Model options that change only the nets from a stage on: the stages before it leave them out of
+their keys (so flow1 is shared between chains with and without ``dm1_prior``, flow1 and dm1
+between chains with and without ``flow2_prior``, and flow1, dm1 and flow2 between chains with and
+without ``dm2_prior``)."""
+
+
+def _stage_model(model: dict[str, Any], name: str, names: list[str]) -> dict[str, Any]:
+    """``model`` as stage ``name`` keys it: without the options, and the nets of one's own, of the
+    slots that a later stage trains first (a net of one's own in ``dm1`` shares ``flow1``)."""
+    def later(stage: str) -> bool:
+        return stage in names and names.index(name) < names.index(stage)
+
+    out = {k: v for k, v in model.items() if not (k in MODEL_OPTION_FROM and later(MODEL_OPTION_FROM[k]))}
+    if "nets" in out:
+        nets = {slot: v for slot, v in out["nets"].items() if not later(slot)}
+        out = {k: v for k, v in out.items() if k != "nets"} | ({"nets": nets} if nets else {})
+    return out
+
+
 def semantic_config(cfg) -> dict[str, Any]:
     """The resolved config as plain containers, without the :data:`NON_SEMANTIC` keys, with
-    bundled files named rather than located (:func:`_portable`)."""
+    bundled files named rather than located (:func:`portable`)."""
     from omegaconf import OmegaConf
 
     plain = OmegaConf.to_container(cfg, resolve=True)
@@ -210,7 +276,7 @@ def semantic_config(cfg) -> dict[str, Any]:
         del plain["precision"]  # the methods that run no net compute the same in any precision
     else:
         plain.update(cpu_threads(cfg))  # nor with any thread count
-    return _portable(leave_out_neutral(plain))
+    return portable(leave_out_neutral(plain))
 
 
 def run_key(cfg) -> str:
@@ -219,8 +285,8 @@ def run_key(cfg) -> str:
 
 
 def stage_key(description: Mapping[str, Any]) -> str:
-    """A training stage's identity: its description (``describe_stage``) and :func:`versions`."""
-    return digest({**versions(), **_portable(dict(description))})
+    """A training stage's identity: its description (:func:`describe_stage`) and :func:`versions`."""
+    return digest({**versions(), **portable(dict(description))})
 
 
 def sweep_key(experiment: str, overrides: Iterable[str]) -> str:

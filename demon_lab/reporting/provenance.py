@@ -23,7 +23,7 @@ from typing import Any
 
 import pandas as pd
 
-from demon_lab.pipeline.identity import digest, is_semantic
+from demon_lab.pipeline.identity import digest, is_semantic, portable
 from demon_lab.pipeline.methods import METHODS
 from demon_lab.pipeline.schema import PRIOR_KEYS
 from demon_lab.reporting.archive import IMPORTED_FROM
@@ -140,8 +140,10 @@ def run_params(run: pd.Series) -> dict[str, str]:
 
 def config_digest(params: Mapping[str, str]) -> str:
     """A digest of a run's composed configuration as it logged it, without its seed and the keys
-    that change no result: the runs of one row at different seeds share it."""
-    return digest({k: v for k, v in params.items() if k != "seed" and is_semantic(k)})
+    that change no result, bundled files named rather than located (the keys' rule:
+    :func:`demon_lab.pipeline.identity.portable`): the runs of one row at different seeds, and from
+    different installs of the package, share it."""
+    return digest(portable({k: v for k, v in params.items() if k != "seed" and is_semantic(k)}))
 
 
 def rows(spec: Mapping[str, Any], used: pd.DataFrame) -> list[dict[str, Any]]:

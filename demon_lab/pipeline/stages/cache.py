@@ -1,7 +1,7 @@
 """The stage cache (docs/running.md, "The stage cache").
 
 Every stage's result is stored under a key hashing everything that determines it
-(:func:`demon_lab.pipeline.identity.stage_key` of ``demon_lab.pipeline.stages.schedule.describe_stage``: the stage's
+(:func:`demon_lab.pipeline.identity.stage_key` of :func:`demon_lab.pipeline.identity.describe_stage`: the stage's
 own config, the model and loss config, the training data config, the seed, the upstream stages'
 keys and the code's and the scene generator's versions). A finished stage is reused instead of
 retrained (so an iteration sweep trains once and evaluates N times), an interrupted one resumes
