@@ -3,8 +3,8 @@
 Every job is checked before it does any work, and a bad key, type or value is one line on stderr and
 exit status 2, with no MLflow run created:
 
-* a sweep's jobs by the sweep's sweeper (:mod:`demon_lab.app.sweeper`), which composes and validates
-  every job before it launches any;
+* a sweep's jobs before the sweeper launches any (:mod:`demon_lab.app.sweep`: the Hydra callback's
+  ``on_multirun_start`` composes and validates every job);
 * a single job by the job itself (:func:`demon_lab.app.job.run` validates before it opens its run);
 * what Hydra itself cannot compose (an unknown key, a missing config) by this entry point: Hydra
   raises it (``HYDRA_FULL_ERROR=1``, Hydra's documented switch) and it is printed as one line here.
@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import functools
 import os
-import pkgutil
 import sys
 from collections.abc import Sequence
 
@@ -27,8 +26,6 @@ from demon_lab.pipeline.config import register_resolvers
 CONF = str(resources.CONF)
 register_resolvers()  # conf/ interpolates demon_lab's resolvers (${bundled:}, ${non_semantic_overrides:}, ...)
 CONFIG_NAME = "config"
-SWEEPER = "demon_lab_sweeper"
-"""demon_lab's sweeper plugin, a module of Hydra's ``hydra_plugins`` namespace."""
 
 
 def _split(args: Sequence[str]) -> tuple[bool, list[str]]:
@@ -48,13 +45,6 @@ def _primary(loader, overrides: list[str], multirun: bool):
     return loader.load_configuration(CONFIG_NAME, [*overrides, f"hydra.mode={mode.name}"], mode)
 
 
-def _batches(loader, primary) -> list[list[list[str]]]:
-    """A sweep's jobs in batches, as its sweeper expands them (``hydra.sweeper.params``, then the command line)."""
-    from demon_lab.app.sweeper import Sweeper
-
-    return Sweeper.batches(primary.hydra.sweeper.get("params"), primary.hydra.overrides.task, loader)
-
-
 def check(args: Sequence[str]) -> str | None:
     """None if every job of ``python -m demon_lab ARGS`` composes and validates, else the line that
     says why. ``ARGS``: overrides, with ``-m`` (``--multirun``) for a sweep; each job is composed by
@@ -64,7 +54,7 @@ def check(args: Sequence[str]) -> str | None:
     from hydra.errors import HydraException
     from omegaconf.errors import OmegaConfBaseException
 
-    from demon_lab.app.sweeper import check_job, check_sweep, one_line
+    from demon_lab.app.sweep import check_job, check_sweep, one_line
     from demon_lab.pipeline.config import ConfigError
 
     multirun, overrides = _split(args)
@@ -73,7 +63,7 @@ def check(args: Sequence[str]) -> str | None:
         try:
             primary = _primary(loader, overrides, multirun)
             if multirun:
-                return check_sweep(primary, loader, _batches(loader, primary))
+                return check_sweep(primary, loader)
             check_job(primary, primary.hydra.runtime.choices.get("hydra/launcher") or "basic", multirun=False)
         except ConfigError as e:
             return str(e)
@@ -84,22 +74,17 @@ def check(args: Sequence[str]) -> str | None:
 
 def sweep_jobs(args: Sequence[str]) -> list[list[str]]:
     """The overrides of each job that ``python -m demon_lab -m ARGS`` runs, as its sweeper expands
-    them (``hydra.sweeper.params``, then the command line)."""
+    them (``hydra.sweeper.params``, then the command line: :func:`demon_lab.app.sweep.expand`)."""
     from hydra import initialize_config_dir
     from hydra.core.global_hydra import GlobalHydra
+
+    from demon_lab.app.sweep import expand
 
     _, overrides = _split(args)
     with initialize_config_dir(CONF, version_base="1.3"):
         loader = GlobalHydra.instance().config_loader()
-        batches = _batches(loader, _primary(loader, overrides, multirun=True))
-    return [job for batch in batches for job in batch]
-
-
-def sweeper_found() -> bool:
-    """Whether Hydra's plugin scan (``pkgutil`` over the ``hydra_plugins`` namespace) sees the sweeper."""
-    import hydra_plugins
-
-    return any(m.name == SWEEPER for m in pkgutil.iter_modules(hydra_plugins.__path__))
+        primary = _primary(loader, overrides, multirun=True)
+        return expand(primary.hydra.sweeper.get("params"), primary.hydra.overrides.task, loader)
 
 
 def main() -> None:
@@ -108,13 +93,8 @@ def main() -> None:
     from omegaconf.errors import OmegaConfBaseException
 
     from demon_lab.app.job import main_task
-    from demon_lab.app.sweeper import one_line
+    from demon_lab.app.sweep import one_line
 
-    if not sweeper_found():
-        print("error: Hydra does not find demon_lab's sweeper (hydra_plugins/demon_lab_sweeper): an editable "
-              "install of setuptools' default mode hides it; install demon_lab again with pip install -e . "
-              "(its build backend installs in setuptools' compat mode), or from its wheel", file=sys.stderr)
-        sys.exit(2)
     started = []
 
     @functools.wraps(main_task)  # Hydra names the job after the task's module: demon_lab.app.job

@@ -43,3 +43,11 @@ DEMON_DESIGN = ("design=demon",)
 
 
 FOUR_PRIORS_OFF = ("model.flow1_prior=null", "model.dm1_prior=null", "model.flow2_prior=null", "model.dm2_prior=null")
+
+
+def settings(cfg):
+    """A composed config as the job's settings, which the pipeline's functions take (the job builds them
+    once: :func:`demon_lab.pipeline.validate.validate`)."""
+    from demon_lab.pipeline.settings import JobSettings
+
+    return JobSettings.of(cfg)

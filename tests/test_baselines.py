@@ -18,6 +18,7 @@ from demon_lab.data import synthetic as syn
 from demon_lab.data.datasets import SyntheticDataset
 from demon_lab.data.sample import make_sample, normalize_translation
 from tests.conftest import random_scene
+from tests.jobs import settings
 
 
 def correspondences(seed: int = 0, h: int = 96, w: int = 128):
@@ -299,7 +300,7 @@ def test_a_baseline_job_reads_its_pairs_at_baseline_size(sun3d_test_pairs, monke
         with open_dict(cfg):
             cfg.data.test = OmegaConf.create([entry])
         seen.clear()
-        (result,) = evaluate.evaluate_test_sets(cfg, None, refined=False)
+        (result,) = evaluate.evaluate_test_sets(settings(cfg), None, refined=False)
         assert seen == [shape] and result.summary["n_samples"] == 1 and result.summary["n_failed"] == 0, size
 
 

@@ -11,6 +11,7 @@ from conftest import table_alignment, table_rows
 from demon_lab.core import geometry as geo
 from demon_lab.data import throughput
 from demon_lab.tools import bench, bench_train
+from tests.jobs import settings
 
 
 def test_write_section_replaces_only_its_own_section(tmp_path):
@@ -114,7 +115,7 @@ def test_a_designs_bare_steps_are_its_stages_as_the_job_builds_them(tmp_path):
     cfg = bench_train._compose(overrides)
     from demon_lab.pipeline.stages.schedule import build_chain
 
-    batch = training_batch(cfg, build_chain(cfg), 2)
+    batch = training_batch(cfg, build_chain(settings(cfg)), 2)
     assert batch["prior_flow"].shape == (2, 2, 16, 16) and batch["prior_motion"].shape == (2, 6)
 
 

@@ -14,7 +14,7 @@ from demon_lab import resources
 from demon_lab.__main__ import CONF
 from demon_lab.pipeline.identity import run_key
 from tests.conftest import shared_renders
-from tests.jobs import DEMON_DESIGN, FOUR_PRIORS_OFF, client, compose_config, smoke_overrides
+from tests.jobs import DEMON_DESIGN, FOUR_PRIORS_OFF, client, compose_config, settings, smoke_overrides
 
 
 @pytest.mark.parametrize("scale", ["smoke", "cpu", "paper"])
@@ -27,7 +27,7 @@ def test_longer_oracle_study_trains_dm1_four_times_the_profile_and_shares_flow1(
         long = compose("config", [f"scale={scale}", "+experiment=gt_flow_oracle_long", "oracle=flow"])
     assert long.experiment == "gt_flow_oracle_long" and long.schedule.stages.dm1.oracle == "flow"
     assert long.schedule.stages.dm1.steps == 4 * base.scale.steps.dm1 == 4 * base.schedule.stages.dm1.steps
-    (flow1, dm1), (flow1_long, dm1_long) = stage_dirs(base), stage_dirs(long)
+    (flow1, dm1), (flow1_long, dm1_long) = stage_dirs(settings(base)), stage_dirs(settings(long))
     assert flow1.key == flow1_long.key and dm1.key != dm1_long.key
 
 
@@ -46,7 +46,7 @@ def test_the_probe_options_are_absent_from_every_profile_and_key_only_their_stag
         layers = compose("config", [f"scale={scale}", "+schedule.stages.flow1.layers_first=0.3"])
     for spec in plain.schedule.stages.values():
         assert not {"level5_fade", "gt_flow_warmup", "easy_first", "layers_first"} & set(spec)
-    keys = {name: [d.key for d in stage_dirs(cfg)]
+    keys = {name: [d.key for d in stage_dirs(settings(cfg))]
             for name, cfg in (("plain", plain), ("fade", fade), ("warm", warm), ("easy", easy), ("layers", layers))}
     for option in ("fade", "easy", "layers"):
         assert all(a != b for a, b in zip(keys["plain"], keys[option], strict=True))
@@ -67,10 +67,10 @@ def test_design_demon_is_demons_design_at_every_scale_with_the_keys_of_the_four_
         named = compose("config", [f"scale={scale}", "design=demon"])
         spelled = compose("config", [f"scale={scale}", *FOUR_PRIORS_OFF])
         own = compose("config", [f"scale={scale}"])
-    assert run_key(named) == run_key(spelled)
-    assert [d.key for d in stage_dirs(named)] == [d.key for d in stage_dirs(spelled)]
+    assert run_key(settings(named)) == run_key(settings(spelled))
+    assert [d.key for d in stage_dirs(settings(named))] == [d.key for d in stage_dirs(settings(spelled))]
     assert design_name(departures(flatten(OmegaConf.to_container(named, resolve=True)))) == DEMON
-    assert (run_key(named) == run_key(own)) == (scale != "cpu")
+    assert (run_key(settings(named)) == run_key(settings(own))) == (scale != "cpu")
 
 
 @pytest.mark.parametrize("option, key, built", [
@@ -87,11 +87,11 @@ def test_a_flow_net_option_keys_every_stage_and_the_run_and_is_absent_by_default
     with initialize_config_dir(CONF, version_base="1.3"):
         plain = compose("config", [f"scale={scale}", *DEMON_DESIGN])
         changed = compose("config", [f"scale={scale}", *DEMON_DESIGN, option])
-    assert plain.model[key] is None and key not in semantic_config(plain)["model"]
-    assert all(a.key != b.key for a, b in zip(stage_dirs(plain), stage_dirs(changed), strict=True))
-    assert run_key(plain) != run_key(changed)
+    assert plain.model[key] is None and key not in semantic_config(settings(plain))["model"]
+    assert all(a.key != b.key for a, b in zip(stage_dirs(settings(plain)), stage_dirs(settings(changed)), strict=True))
+    assert run_key(settings(plain)) != run_key(settings(changed))
     if scale != "paper":  # (the paper-scale chain is 46 M parameters: the smaller ones show the same)
-        assert built(build_chain(changed)) and not built(build_chain(plain))
+        assert built(build_chain(settings(changed))) and not built(build_chain(settings(plain)))
 
 
 @pytest.mark.parametrize(("option", "first"), [("dm1_prior=ransac", "dm1"), ("flow2_prior=previous", "flow2"),
@@ -104,14 +104,14 @@ def test_a_motion_prior_keys_the_stages_from_its_net_on_and_shares_those_before(
     with initialize_config_dir(CONF, version_base="1.3"):
         plain = compose("config", ["scale=cpu", *DEMON_DESIGN])
         prior = compose("config", ["scale=cpu", *DEMON_DESIGN, f"model.{option}"])
-    assert plain.model[key] is None and run_key(plain) != run_key(prior)
-    a, b = stage_dirs(plain), stage_dirs(prior)
+    assert plain.model[key] is None and run_key(settings(plain)) != run_key(settings(prior))
+    a, b = stage_dirs(settings(plain)), stage_dirs(settings(prior))
     names = [d.name for d in a]
     assert names == [d.name for d in b] and first in names
     cut = names.index(first)
     assert all(x.key == y.key for x, y in zip(a[:cut], b[:cut], strict=True))
     assert all(x.key != y.key for x, y in zip(a[cut:], b[cut:], strict=True))
-    assert getattr(build_chain(prior), key) == value and getattr(build_chain(plain), key) is None
+    assert getattr(build_chain(settings(prior)), key) == value and getattr(build_chain(settings(plain)), key) is None
 
 
 def test_only_the_cpu_profile_departs_and_the_departures_study_turns_each_departure_off():
@@ -141,7 +141,7 @@ def test_only_the_cpu_profile_departs_and_the_departures_study_turns_each_depart
     for key in ("dm1_prior", "flow2_prior", "dm2_prior"):
         assert rows[f"no_{key}"] == {**four, key: None}
     with initialize_config_dir(CONF, version_base="1.3"):
-        chain = build_chain(compose("config", ["scale=cpu", *spec["runs"][0]]))
+        chain = build_chain(settings(compose("config", ["scale=cpu", *spec["runs"][0]])))
     assert (chain.flow1_prior, chain.dm1_prior, chain.flow2_prior, chain.dm2_prior) == tuple(four.values())
 
 
@@ -158,14 +158,15 @@ def test_a_stage_key_holds_only_the_loss_weights_that_stage_reads():
     with initialize_config_dir(CONF, version_base="1.3"):
         for loss in ("supplementary", "no_normals", "depth_sig_1000", "no_confidence", "no_sig"):
             cfg = compose("config", ["scale=cpu", "+experiment=loss_weights", f"loss={loss}"])
-            keys[loss] = [d.key for d in stage_dirs(cfg)]
+            keys[loss] = [d.key for d in stage_dirs(settings(cfg))]
     flow1 = {loss: k[0] for loss, k in keys.items()}
     dm1 = {loss: k[1] for loss, k in keys.items()}
     assert flow1["no_normals"] == flow1["depth_sig_1000"] == flow1["supplementary"] != flow1["no_confidence"]
     assert flow1["no_sig"] == flow1["supplementary"]
     assert len(set(dm1.values())) == 5
     with initialize_config_dir(CONF, version_base="1.3"):
-        paper = {loss: stage_dirs(compose("config", ["scale=paper", "+experiment=loss_weights", f"loss={loss}"]))[0].key
+        paper = {loss: stage_dirs(settings(compose("config", ["scale=paper", "+experiment=loss_weights",
+                                                              f"loss={loss}"])))[0].key
                  for loss in ("supplementary", "no_sig")}
     assert paper["no_sig"] != paper["supplementary"]
 
@@ -213,7 +214,7 @@ def test_the_learned_design_has_no_classical_prior_and_its_study_turns_each_choi
         for stage in cfg.schedule.stages.values():
             assert not {"fresh_scenes", "keep_best"} & set(stage)
     assert set(rows) == {"learned", *LEARNED_CHOICES}
-    semantic = _leaves(semantic_config(learned))
+    semantic = _leaves(semantic_config(settings(learned)))
     base = {k: v for k, v in rows["learned"].items() if k in semantic}
     for row, turned_off in LEARNED_CHOICES.items():
         changed = {k: v for k, v in rows[row].items() if k in semantic and base.get(k) != v}
@@ -228,10 +229,10 @@ def test_fresh_scenes_and_keep_best_key_their_stage_and_the_later_ones_only(opti
     from demon_lab.pipeline.stages.schedule import stage_dirs
 
     with initialize_config_dir(CONF, version_base="1.3"):
-        plain = [d.key for d in stage_dirs(compose("config", ["scale=cpu"]))]
-        changed = [d.key for d in stage_dirs(compose("config", ["scale=cpu", f"+{option}"]))]
-        other_val = [d.key for d in stage_dirs(compose("config", ["scale=cpu", f"+{option}",
-                                                                  "data.val=${data.test}"]))]
+        plain = [d.key for d in stage_dirs(settings(compose("config", ["scale=cpu"])))]
+        changed = [d.key for d in stage_dirs(settings(compose("config", ["scale=cpu", f"+{option}"])))]
+        other_val = [d.key for d in stage_dirs(settings(compose("config", ["scale=cpu", f"+{option}",
+                                                                  "data.val=${data.test}"])))]
     first = 0 if ".flow1." in option else 1
     assert changed[:first] == plain[:first]
     assert all(a != b for a, b in zip(plain[first:], changed[first:], strict=True))
@@ -287,7 +288,7 @@ def test_the_profiles_priors_alone_are_scored_beside_the_chain_and_change_none_o
     from demon_lab.pipeline.stages.schedule import build_chain
 
     cfg = compose_config(smoke_overrides(tmp_path, "model.flow1_prior=dis_x2", "model.dm1_prior=ransac_prior"))
-    chain = build_chain(cfg).eval()
+    chain = build_chain(settings(cfg)).eval()
     dataset = SyntheticDataset("synthetic_sun3d", split="test", length=3, size=(64, 64), cache_dir=shared_renders())
     rows, _ = evaluate_dataset(chain, dataset, iterations=1)
     priors = [r for r in rows if r["it"] == "priors"]
@@ -304,7 +305,7 @@ def test_the_profiles_priors_alone_are_scored_beside_the_chain_and_change_none_o
     assert without == [r for r in rows if r["it"] != "priors"]
     monkeypatch.undo()
     assert not [r for r in evaluate_dataset(chain, dataset, iterations=0, oracle="flow")[0] if r["it"] == "priors"]
-    plain = build_chain(compose_config(smoke_overrides(tmp_path))).eval()
+    plain = build_chain(settings(compose_config(smoke_overrides(tmp_path)))).eval()
     assert not [r for r in evaluate_dataset(plain, dataset, iterations=0)[0] if r["it"] == "priors"]
 
 
@@ -325,5 +326,5 @@ def test_a_profiled_stage_logs_its_loops_largest_parts_and_keeps_its_keys():
     assert len(figures) == LOOP_PARTS + 1 and "profile/run_training_epoch_seconds" not in figures
     assert figures["profile/outside_seconds"] == pytest.approx(8.0 - 5.0 - 1.0)
     assert not identity.is_semantic("trainer.profile")
-    assert identity.run_key(compose_config(["scale=smoke", "trainer.profile=true"])) == \
-        identity.run_key(compose_config(["scale=smoke"]))
+    assert identity.run_key(settings(compose_config(["scale=smoke", "trainer.profile=true"]))) == \
+        identity.run_key(settings(compose_config(["scale=smoke"])))

@@ -17,8 +17,8 @@ from torch.utils.data import default_collate
 from demon_lab.core import execution, loss_maps, losses, warping
 from demon_lab.core import geometry as geo
 from demon_lab.nets.chain import DeMoN
+from demon_lab.pipeline.kinds import DepthMotionStage, FlowStage
 from demon_lab.pipeline.stages.base import StageModule
-from demon_lab.pipeline.stages.kinds import DepthMotionStage, FlowStage
 
 WEIGHTS = losses.preset("released_code")
 

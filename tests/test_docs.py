@@ -207,7 +207,7 @@ def test_the_configuration_reference_is_current_and_gives_every_key_a_meaning():
     from hydra import compose, initialize_config_dir
     from omegaconf import OmegaConf
 
-    from demon_lab.pipeline.stages.kinds import STAGE_SPECS, options_of
+    from demon_lab.pipeline.kinds import STAGE_SPECS, options_of
     from demon_lab.resources import CONF
     from demon_lab.tools import config_docs
 

@@ -18,7 +18,7 @@ from demon_lab.pipeline.config import ConfigError
 from demon_lab.pipeline.identity import run_key
 from demon_lab.pipeline.stages.schedule import stage_dirs
 from demon_lab.pipeline.validate import validate
-from tests.jobs import DEMON_DESIGN, client, compose_config, smoke_overrides
+from tests.jobs import DEMON_DESIGN, client, compose_config, settings, smoke_overrides
 
 
 def test_precision_names_are_lightnings():
@@ -164,7 +164,7 @@ def test_the_nets_return_float32_under_autocast_and_the_losses_too():
 
 
 def _keys(cfg) -> tuple[str, list[str]]:
-    return run_key(cfg), [s.key for s in stage_dirs(cfg)]
+    return run_key(settings(cfg)), [s.key for s in stage_dirs(settings(cfg))]
 
 
 def test_precision_keys_stages_and_runs_only_off_its_default_and_layout_or_compile_none(tmp_path):
@@ -277,7 +277,7 @@ def test_compile_trains_a_smoke_stage_or_is_refused_in_one_line(tmp_path):
     threads = torch.get_num_threads()
     try:
         torch.set_num_threads(1)
-        chain, stages, figures = prepare_chain(cfg, progress=False)
+        chain, stages, figures = prepare_chain(settings(cfg), progress=False)
     finally:
         torch.set_num_threads(threads)
     assert counters["stats"]["unique_graphs"] >= 1  # the nets did run compiled
@@ -347,9 +347,9 @@ def test_precision_keys_only_what_runs_a_net(tmp_path):
     from demon_lab.pipeline.identity import sweep_key
 
     base = smoke_overrides(tmp_path, "method=base_ff")
-    assert run_key(compose_config(base)) == run_key(compose_config([*base, "precision=bf16-mixed"]))
+    assert run_key(settings(compose_config(base))) == run_key(settings(compose_config([*base, "precision=bf16-mixed"])))
     frozen = smoke_overrides(tmp_path, "scale.steps.flow1=0")
-    plain, bf16 = (stage_dirs(compose_config(frozen + extra)) for extra in ([], ["precision=bf16-mixed"]))
+    plain, bf16 = (stage_dirs(settings(compose_config(frozen + extra))) for extra in ([], ["precision=bf16-mixed"]))
     assert plain[0].key == bf16[0].key and plain[1].key != bf16[1].key  # flow1 trains nothing in bf16
     assert sweep_key("e", ["precision=bf16"]) == sweep_key("e", ["precision=bf16-mixed"]) \
         != sweep_key("e", ["precision=32"])
@@ -362,7 +362,7 @@ def test_the_cpu_thread_count_keys_what_a_cpu_job_trains(tmp_path):
 
     frozen = smoke_overrides(tmp_path, "scale.steps.flow1=0", "trainer.accelerator=cpu")
     one, two, four = (compose_config([*frozen, f"threads={n}"]) for n in (1, 2, 4))
-    assert [cpu_threads(c) for c in (one, two, four)] == [{"threads": 1}, {}, {"threads": 4}]
+    assert [cpu_threads(settings(c)) for c in (one, two, four)] == [{"threads": 1}, {}, {"threads": 4}]
     keys = [_keys(c) for c in (one, two, four)]
     assert len({k[0] for k in keys}) == 3 and len({k[1][1] for k in keys}) == 3
     assert keys[0][1][0] == keys[1][1][0] == keys[2][1][0]  # flow1 trains nothing: the same stage
@@ -373,8 +373,9 @@ def test_the_cpu_thread_count_keys_what_a_cpu_job_trains(tmp_path):
     finally:
         torch.set_num_threads(threads)
     base = smoke_overrides(tmp_path, "method=base_ff", "trainer.accelerator=cpu")
-    assert run_key(compose_config([*base, "threads=1"])) == run_key(compose_config([*base, "threads=2"]))
-    assert cpu_threads(compose_config([*frozen, "threads=1", "trainer.accelerator=cuda"])) == {}
+    one, two = (settings(compose_config([*base, f"threads={n}"])) for n in (1, 2))
+    assert run_key(one) == run_key(two)
+    assert cpu_threads(settings(compose_config([*frozen, "threads=1", "trainer.accelerator=cuda"]))) == {}
     assert sweep_key("e", ["threads=1"]) == sweep_key("e", [])
 
 

@@ -9,6 +9,7 @@ from omegaconf import OmegaConf
 from demon_lab import resources
 from demon_lab.pipeline import config, identity
 from demon_lab.pipeline.stages.schedule import stage_dirs
+from tests.jobs import settings
 
 
 def _compose(*overrides: str, hydra: bool = False):
@@ -33,26 +34,26 @@ def test_output_folders_exclude_exactly_the_non_semantic_keys_a_user_can_set():
 
 
 def test_run_key_ignores_non_semantic_keys_and_follows_semantic_ones(tmp_path):
-    base = identity.run_key(_compose("threads=1"))  # the thread count is keyed (cpu_threads): held the same here
-    assert identity.run_key(_compose("threads=1", "force=true", f"cache_dir={tmp_path}", "eval.visualize=0",
-                                     f"tracking.uri=sqlite:///{tmp_path}/x.db", "tracking=local_server")) == base
-    assert identity.run_key(_compose("seed=1")) != base
-    assert identity.run_key(_compose("iterations=5")) != base
+    base = identity.run_key(settings(_compose("threads=1")))  # the thread count is keyed: held the same here
+    assert identity.run_key(settings(_compose("threads=1", "force=true", f"cache_dir={tmp_path}", "eval.visualize=0",
+                                     f"tracking.uri=sqlite:///{tmp_path}/x.db", "tracking=local_server"))) == base
+    assert identity.run_key(settings(_compose("seed=1"))) != base
+    assert identity.run_key(settings(_compose("iterations=5"))) != base
 
 
 def test_keys_do_not_depend_on_where_the_package_is_installed(monkeypatch, tmp_path):
     cfg = _compose("data=pair_folder")  # trains on the bundled pair: its path is in the stage keys
     assert str(resources.DATA) in OmegaConf.to_container(cfg.data, resolve=True)["path"]
-    run, stages = identity.run_key(cfg), [s.key for s in stage_dirs(cfg)]
+    run, stages = identity.run_key(settings(cfg)), [s.key for s in stage_dirs(settings(cfg))]
     elsewhere = tmp_path / "site-packages" / "demon_lab" / "data" / "real"
     monkeypatch.setattr(resources, "DATA", elsewhere)
     monkeypatch.setattr(config, "DATA", elsewhere)
     moved = _compose("data=pair_folder")
     assert str(elsewhere) in OmegaConf.to_container(moved.data, resolve=True)["path"]
-    assert identity.run_key(moved) == run and [s.key for s in stage_dirs(moved)] == stages
+    assert identity.run_key(settings(moved)) == run and [s.key for s in stage_dirs(settings(moved))] == stages
     # ... while a user's own folder is part of the key
     other = _compose("data=pair_folder", f"data.path={tmp_path}")
-    assert identity.run_key(other) != run
+    assert identity.run_key(settings(other)) != run
 
 
 def test_sweep_key_drops_non_semantic_overrides_and_keeps_their_order_irrelevant():
@@ -68,7 +69,7 @@ def test_keys_do_not_depend_on_where_scenes_are_cached(tmp_path):
     tests/test_execution.py."""
     def keys(*overrides: str) -> tuple[str, list[str]]:
         cfg = _compose(*overrides)
-        return identity.run_key(cfg), [s.key for s in stage_dirs(cfg)]
+        return identity.run_key(settings(cfg)), [s.key for s in stage_dirs(settings(cfg))]
 
     for scale in ("scale=smoke", "scale=cpu", "scale=paper"):
         base = keys(scale)
@@ -120,14 +121,14 @@ def test_code_other_than_the_recorded_keys_its_stages_and_runs_apart(monkeypatch
     """An edited install (the digest of its stage or generator code is not the recorded one) never reuses a
     stage or run of the recorded code: its version carries its digest, and so do its keys."""
     cfg = _compose("scale=smoke")
-    stages, run = [s.key for s in stage_dirs(cfg)], identity.run_key(cfg)
+    stages, run = [s.key for s in stage_dirs(settings(cfg))], identity.run_key(settings(cfg))
     for name in resources.SOURCES:
         with monkeypatch.context() as m:
             m.setitem(resources.RECORDED_SOURCES, name, "0" * 16)
             resources.versioned.cache_clear()
             version = identity.versions()[{"stage": "code_version", "generator": "generator_version"}[name]]
             assert version.endswith("+" + resources.source_digest(resources.SOURCES[name]))
-            assert identity.run_key(cfg) != run
-            assert all(a != b for a, b in zip([s.key for s in stage_dirs(cfg)], stages, strict=True))
+            assert identity.run_key(settings(cfg)) != run
+            assert all(a != b for a, b in zip([s.key for s in stage_dirs(settings(cfg))], stages, strict=True))
         resources.versioned.cache_clear()
-    assert [s.key for s in stage_dirs(cfg)] == stages and identity.run_key(cfg) == run
+    assert [s.key for s in stage_dirs(settings(cfg))] == stages and identity.run_key(settings(cfg)) == run

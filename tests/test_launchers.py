@@ -3,9 +3,6 @@ deterministic, and site settings (local/slurm.yaml on hydra.searchpath) reach th
 
 from __future__ import annotations
 
-import subprocess
-import sys
-
 import pytest
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
@@ -50,104 +47,59 @@ def test_every_job_of_every_documented_sweep_composes_with_every_launcher(launch
         assert len(subdirs) == len(jobs)  # each job its own folder, the same on every re-issue
 
 
-def test_sweeps_run_through_demon_labs_sweeper_which_hydra_finds_and_instantiates(tmp_path):
-    """conf/config.yaml selects hydra/sweeper=demon_lab: an experiment's declared sweep still reaches it,
-    and Hydra instantiates it from the hydra_plugins name it requires of a sweeper, found by Hydra's own
-    plugin scan (nothing registers it), also from a folder that is not the checkout."""
-    from types import SimpleNamespace
+def test_sweeps_run_on_hydras_own_basic_sweeper_and_demon_lab_expands_them_as_it_does():
+    """conf/config.yaml keeps Hydra's basic sweeper (no plugin of demon_lab's); an experiment's declared
+    sweep reaches it; and the jobs demon_lab checks before the first launch (``sweep.expand``) are the
+    jobs the basic sweeper launches, in its order: choices, ranges, a config group's glob, a key given
+    in both hydra.sweeper.params and on the command line (the command line's value, in the first place)."""
+    from hydra._internal.core_plugins.basic_sweeper import BasicSweeper  # (Hydra's own, to compare with)
+    from hydra.core.global_hydra import GlobalHydra
+    from hydra.core.override_parser.overrides_parser import OverridesParser
 
-    from hydra.core.plugins import Plugins
-    from hydra.types import HydraContext
-
-    from demon_lab.app.sweeper import Sweeper
+    from demon_lab.app.sweep import expand
 
     with initialize_config_dir(CONF, version_base="1.3"):
         cfg = compose("config", overrides=["+experiment=iterations"], return_hydra_config=True)
-    assert cfg.hydra.sweeper._target_ == "hydra_plugins.demon_lab_sweeper.DemonLabSweeper"
-    assert dict(cfg.hydra.sweeper.params) == {"iterations": "0,1,2,3,4,5", "seed": "0,1,2"}
-    context = HydraContext(config_loader=None, callbacks=SimpleNamespace(callbacks=[]))
-    sweeper = Plugins.instance().instantiate_sweeper(config=cfg, hydra_context=context, task_function=print)
-    assert isinstance(sweeper, Sweeper) and sweeper.params == cfg.hydra.sweeper.params
-    scan = ("from hydra.core.plugins import Plugins; from hydra.plugins.sweeper import Sweeper; "
-            "print(sorted(c.__module__ + '.' + c.__name__ for c in Plugins.instance().discover(Sweeper)))")
-    found = subprocess.run([sys.executable, "-c", scan], cwd=tmp_path, capture_output=True, text=True, timeout=120)
-    assert "hydra_plugins.demon_lab_sweeper.DemonLabSweeper" in found.stdout, found.stderr[-2000:]
+        assert cfg.hydra.sweeper._target_ == "hydra._internal.core_plugins.basic_sweeper.BasicSweeper"
+        assert dict(cfg.hydra.sweeper.params) == {"iterations": "0,1,2,3,4,5", "seed": "0,1,2"}
+        loader = GlobalHydra.instance().config_loader()
+        cases = [({"iterations": "0,1,2,3,4,5", "seed": "0,1,2"}, ["seed=4", "threads=1"]),
+                 ({"seed": "range(0,3)"}, ["method=base_ff,base_sift", "+experiment=iterations"]),
+                 (None, ["scale=glob(sm*)", "seed=0,1"]),
+                 ({"seed": "0,1"}, [])]
+        for params, arguments in cases:
+            lines = [f"{k}={v}" for k, v in (params or {}).items()] + arguments
+            hydras = BasicSweeper.split_arguments(OverridesParser.create(loader).parse_overrides(lines), None)[0]
+            assert expand(params, arguments, loader) == hydras, (params, arguments)
+    assert expand({"iterations": "0,1", "seed": "0,1,2"}, ["seed=4"])[0] == ["iterations=0", "seed=4"]
 
 
-def _smoke_sweep(tmp_path, params):
-    """A sweeper of ``params`` at the smoke scale, its config loader counting the jobs it composes, its
-    launcher recording the batches (seed=1 fails), its callbacks recording what reached them."""
-    from types import SimpleNamespace
-
+def _multirun_config(tmp_path, *overrides: str):
+    """A smoke sweep's primary config as Hydra composes it for ``-m`` (call inside initialize_config_dir)."""
     from hydra.core.global_hydra import GlobalHydra
-    from hydra.core.utils import JobReturn, JobStatus
     from hydra.types import RunMode
 
-    from demon_lab.app.sweeper import Sweeper
-
-    seen = {"composed": [], "launched": [], "checked": [], "handed": []}
     loader = GlobalHydra.instance().config_loader()
-
-    class Counting:
-        def load_sweep_config(self, primary, overrides):
-            seen["composed"].append(list(overrides))
-            return loader.load_sweep_config(primary, overrides)
-
-        def __getattr__(self, name):
-            return getattr(loader, name)
-
-    class Launcher:
-        def launch(self, job_overrides, initial_job_idx):
-            seen["launched"].append([list(o) for o in job_overrides])
-            return [JobReturn(overrides=list(o), status=JobStatus.FAILED if "seed=1" in o else JobStatus.COMPLETED)
-                    for o in job_overrides]
-
-    class Recorder:
-        def on_sweep_checked(self, config):
-            seen["checked"].append(len(seen["launched"]))
-
-        def on_jobs_returned(self, config, job_returns):
-            seen["handed"].append([(r.overrides[0], r.status) for r in job_returns])
-
-    sweeper = Sweeper(max_batch_size=2, params=params)
-    sweeper.config = loader.load_configuration("config", ["scale=smoke", f"hydra.sweep.dir={tmp_path / 'sweep'}",
-                                                          "hydra.mode=MULTIRUN"], RunMode.MULTIRUN)
-    sweeper.hydra_context = SimpleNamespace(config_loader=Counting(),
-                                            callbacks=SimpleNamespace(callbacks=[Recorder(), object()]))
-    sweeper.launcher = Launcher()
-    return sweeper, seen
-
-
-def test_the_sweeper_checks_every_job_then_launches_every_batch_past_a_failed_job(tmp_path):
-    """The basic sweeper's jobs and batches (the command line wins over hydra.sweeper.params); every job
-    composed once by the sweeper (as its launcher will compose it) and validated before the first
-    launch, the callbacks told then (on_sweep_checked: the parent run opens there); a FAILED job does
-    not stop the sweep; each batch's JobReturns reach the callbacks' on_jobs_returned in the sweep's
-    process."""
-    from hydra.core.utils import JobStatus
-
-    with initialize_config_dir(CONF, version_base="1.3"):
-        sweeper, seen = _smoke_sweep(tmp_path, {"seed": "0,1,2", "iterations": "5"})
-        returns = sweeper.sweep(["iterations=0", "method=demon"])
-    jobs = [["seed=0", "iterations=0", "method=demon"], ["seed=1", "iterations=0", "method=demon"],
-            ["seed=2", "iterations=0", "method=demon"]]
-    assert seen["composed"] == jobs
-    assert seen["checked"] == [0]  # every job checked before the first launch
-    assert seen["launched"] == [jobs[:2], jobs[2:]]
-    assert seen["handed"] == [[("seed=0", JobStatus.COMPLETED), ("seed=1", JobStatus.FAILED)],
-                              [("seed=2", JobStatus.COMPLETED)]]
-    assert [len(batch) for batch in returns] == [2, 1]
-    assert (tmp_path / "sweep" / "multirun.yaml").is_file()
+    return loader.load_configuration("config", ["scale=smoke", f"hydra.sweep.dir={tmp_path / 'sweep'}",
+                                                f"tracking.uri=sqlite:///{tmp_path}/mlflow.db",
+                                                "hydra.mode=MULTIRUN", *overrides], RunMode.MULTIRUN)
 
 
 def test_a_sweep_with_one_bad_job_launches_none_and_says_which_in_one_line(tmp_path, capsys):
+    """Before the sweeper starts (Hydra's ``on_multirun_start``), the callback composes every job of the
+    sweep as its launcher will and validates it: one bad job is one line and exit status 2, with no
+    store, no parent run and no job folder; a good sweep passes and opens its parent run."""
+    from demon_lab.app.callbacks import MultirunTracking
+
     with initialize_config_dir(CONF, version_base="1.3"):
-        sweeper, seen = _smoke_sweep(tmp_path, {"seed": "0,1", "iterations": "0,-2"})
+        callback = MultirunTracking()
         with pytest.raises(SystemExit) as exited:
-            sweeper.sweep([])
-    assert exited.value.code == 2
-    assert seen["launched"] == [] and seen["checked"] == [] and not (tmp_path / "sweep").exists()
-    assert capsys.readouterr().err.strip() == "error: iterations: expected an integer >= 0, got -2"
+            callback.on_multirun_start(_multirun_config(tmp_path, "seed=0,1", "iterations=0,-2"))
+        assert exited.value.code == 2
+        assert capsys.readouterr().err.strip() == "error: iterations: expected an integer >= 0, got -2"
+        assert not (tmp_path / "mlflow.db").exists() and not (tmp_path / "sweep").exists()
+        callback.on_multirun_start(_multirun_config(tmp_path, "seed=0,1", "iterations=0"))
+    assert callback.parent is not None and callback.sweep is not None
 
 
 def test_site_settings_on_the_search_path_reach_the_slurm_launchers(tmp_path):

@@ -154,7 +154,7 @@ def _terms_at(stage, batch, gt, steps) -> dict[int, dict]:
 
 @pytest.mark.parametrize("sig_start", [0.0, 0.5, 1.0])
 def test_flow_stage_sig_terms_start_at_sig_start(sig_start):
-    from demon_lab.pipeline.stages.kinds import FlowStage
+    from demon_lab.pipeline.kinds import FlowStage
 
     torch.manual_seed(0)
     chain = DeMoN("v1", width=0.0625, size=(64, 64))
@@ -222,7 +222,7 @@ def test_the_depth_sig_terms_keep_their_eps_and_ramp():
 def test_flow_stage_level5_terms_fade_over_level5_fade(fade):
     """DeMoN fades the level-5 terms out over the first third of a flow stage; ``level5_fade`` sets
     that fraction (3: at the stage's end the term is still at 1 - (1/3)^2 of its weight)."""
-    from demon_lab.pipeline.stages.kinds import FlowStage
+    from demon_lab.pipeline.kinds import FlowStage
 
     torch.manual_seed(0)
     chain = DeMoN("v1", width=0.0625, size=(64, 64))
@@ -245,7 +245,7 @@ def test_depth_motion_stage_is_fed_ground_truth_flow_for_gt_flow_warmup(warmup):
     from unittest import mock
 
     from demon_lab.nets.chain import ground_truth_inputs
-    from demon_lab.pipeline.stages.kinds import DepthMotionStage
+    from demon_lab.pipeline.kinds import DepthMotionStage
 
     torch.manual_seed(0)
     chain = DeMoN("v1", width=0.0625, size=(64, 64))
@@ -279,7 +279,7 @@ def test_depth_motion_stage_is_fed_ground_truth_flow_for_gt_flow_warmup(warmup):
 def test_iterative_stage_flow_sig_terms_start_at_sig_start(sig_start):
     """DeMoN's iterative stage starts at full weights (sig_start 0); with sig_start the flow sig
     terms are 0 before that fraction of the stage and at full weight after; depth-sig unaffected."""
-    from demon_lab.pipeline.stages.kinds import IterativeStage
+    from demon_lab.pipeline.kinds import IterativeStage
 
     torch.manual_seed(0)
     chain = DeMoN("v1", width=0.0625, size=(64, 64))

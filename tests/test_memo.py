@@ -70,7 +70,7 @@ def test_every_stage_kind_computes_the_same_loss_from_the_memo_and_reads_a_seen_
     """With ``reuse_frozen`` a stage's loss is the one it computes without (on a batch of pairs it
     has not seen the memo computes the whole batch at once, and at the next draw reads those rows
     back), and a pair seen before is not computed again."""
-    from demon_lab.pipeline.stages.kinds import STAGE_SPECS
+    from demon_lab.pipeline.kinds import STAGE_SPECS
 
     options = (dict(flow1_prior="dis", dm1_prior="ransac", flow2_prior="previous", dm2_prior="previous")
                if priors else {})

@@ -17,6 +17,7 @@ from conftest import table_rows
 from hydra import compose, initialize_config_dir
 
 from demon_lab.__main__ import CONF, check
+from tests.jobs import settings
 from tests.test_guides import EXAMPLE, commands, files, problems, section, write
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -66,18 +67,18 @@ def test_a_slot_left_null_is_in_no_key_and_a_net_of_ones_own_keys_its_stage_and_
     name, _ = own_module
     plain = _compose("scale=smoke")
     own = _compose("scale=smoke", f"+model.nets.dm1={{_target_: {name}.Tiny, channels: 3}}")
-    assert "nets" not in semantic_config(plain)["model"]
-    keyed = semantic_config(own)["model"]["nets"]
+    assert "nets" not in semantic_config(settings(plain))["model"]
+    keyed = semantic_config(settings(own))["model"]["nets"]
     assert keyed == {"dm1": {"class": f"{name}.Tiny", "args": {"channels": 3}, "source": keyed["dm1"]["source"]}}
-    a, b = stage_dirs(plain), stage_dirs(own)
+    a, b = stage_dirs(settings(plain)), stage_dirs(settings(own))
     names = [d.name for d in a]
     cut = names.index("dm1")
     assert all(x.key == y.key for x, y in zip(a[:cut], b[:cut], strict=True))  # flow1 shared
     assert all(x.key != y.key for x, y in zip(a[cut:], b[cut:], strict=True))
-    assert run_key(plain) != run_key(own)
-    chain = build_chain(own)
+    assert run_key(settings(plain)) != run_key(settings(own))
+    chain = build_chain(settings(own))
     assert type(chain.dm1).__name__ == "Tiny" and chain.dm1.conv.out_channels == 3 and chain.plugins == ("dm1",)
-    assert type(build_chain(plain).dm1).__name__ == "DepthMotionNet"
+    assert type(build_chain(settings(plain)).dm1).__name__ == "DepthMotionNet"
 
 
 def test_an_edit_of_the_nets_file_changes_its_key(own_module):
@@ -88,11 +89,11 @@ def test_an_edit_of_the_nets_file_changes_its_key(own_module):
 
     name, path = own_module
     override = f"+model.nets.dm1={{_target_: {name}.Tiny}}"
-    before = [d.key for d in stage_dirs(_compose("scale=smoke", override))]
+    before = [d.key for d in stage_dirs(settings(_compose("scale=smoke", override)))]
     path.write_text(path.read_text() + "\n# a comment is an edit too\n")
     importlib.invalidate_caches()
     sys.modules.pop(name, None)
-    after = [d.key for d in stage_dirs(_compose("scale=smoke", override))]
+    after = [d.key for d in stage_dirs(settings(_compose("scale=smoke", override)))]
     assert before[0] == after[0] and before[1:] != after[1:] and all(a != b for a, b in zip(before[1:], after[1:]))
 
 
@@ -120,13 +121,13 @@ def test_a_stage_trains_the_net_of_its_slot_and_the_chain_evaluates_with_it(own_
     torch.manual_seed(0)
     from demon_lab.pipeline.stages.schedule import build_chain, stage_dirs
 
-    untrained = build_chain(cfg).dm1.state_dict()
+    untrained = build_chain(settings(cfg)).dm1.state_dict()
     threads = torch.get_num_threads()
     try:
         run(cfg)
     finally:
         torch.set_num_threads(threads)
-    dm1 = next(d for d in stage_dirs(cfg) if d.name == "dm1")
+    dm1 = next(d for d in stage_dirs(settings(cfg)) if d.name == "dm1")
     saved = dm1.load()["dm1"]
     assert saved.keys() == untrained.keys()
     assert any(not torch.equal(saved[k], untrained[k]) for k in saved)

@@ -15,20 +15,26 @@ import yaml
 
 from demon_lab import resources
 from demon_lab.pipeline.identity import run_key
-from tests.jobs import cli, client, compose_config, smoke_overrides
+from tests.jobs import cli, client, compose_config, settings, smoke_overrides
 
 
 @pytest.fixture(scope="module")
 def smoke_run(tmp_path_factory):
     from demon_lab.app.job import run
+    from demon_lab.pipeline.settings import JobSettings
 
     tmp = tmp_path_factory.mktemp("smoke")
     threads = torch.get_num_threads()
     environment = os.environ.get("MLFLOW_TRACKING_URI")
+    built, of = [], JobSettings.of.__func__
+    JobSettings.of = classmethod(lambda cls, cfg: built.append(1) or of(cls, cfg))
     try:
         result = run(compose_config(smoke_overrides(tmp, "threads=1")))
     finally:
         torch.set_num_threads(threads)
+        JobSettings.of = classmethod(of)
+    # the settings are read once, by the job, and handed down to training, the keys and the evaluation
+    assert len(built) == 1
     # the stage loggers set MLflow's tracking URI process-wide (and export it): the job puts it back,
     # or every process started later would log to this job's store
     assert os.environ.get("MLFLOW_TRACKING_URI") == environment
@@ -51,8 +57,8 @@ def test_smoke_pipeline_records_a_finished_run(smoke_run):
     assert tags["demon_lab.git_dirty"] in ("true", "false")
     # threads=1 took effect, and the run key holds it: the nets computed with 1 thread, not the 2 keys leave out
     assert tags["demon_lab.cpu_threads"] == "1" and run.data.params["threads"] == "1"
-    assert result["run_key"] == run_key(compose_config(smoke_overrides(tmp, "threads=1")))
-    assert result["run_key"] != run_key(compose_config(smoke_overrides(tmp, "threads=2")))
+    assert result["run_key"] == run_key(settings(compose_config(smoke_overrides(tmp, "threads=1"))))
+    assert result["run_key"] != run_key(settings(compose_config(smoke_overrides(tmp, "threads=2"))))
     assert run.data.params["model.width"] == "0.0625" and run.data.params["iterations"] == "3"
     m = run.data.metrics
     for name in ("synthetic_scenes11", "synthetic_sun3d", "synthetic_mvs", "middlebury"):
@@ -293,9 +299,10 @@ finally:
 
 @pytest.mark.slow
 @pytest.mark.parametrize("sweep", [True, False], ids=["sweep", "single"])
-def test_each_job_is_composed_twice_and_handed_the_parent_run(sweep, tmp_path):
-    """``python -m demon_lab`` with the job's work left out: a sweep's job is composed twice in all,
-    with the same overrides (the sweeper's check before any launch, then its launcher), a single job
+def test_each_job_is_composed_as_hydra_does_and_handed_the_parent_run(sweep, tmp_path):
+    """``python -m demon_lab`` with the job's work left out: a sweep's job is composed three times in
+    all, with the same overrides (demon_lab's check of every job before any launch, then Hydra's
+    basic sweeper's own check of its batch and its launcher), a single job
     once (Hydra, to run it; the job validates what it is handed), the parent run reaches every job of a
     sweep (no single run gets one), and a job that fails neither stops the sweep nor goes uncounted.
     Besides, Hydra composes the command's primary config in multirun mode to read ``hydra.mode`` from
@@ -315,7 +322,7 @@ def test_each_job_is_composed_twice_and_handed_the_parent_run(sweep, tmp_path):
     jobs = [o for o in composed if f"cache_dir={tmp_path}/cache" in o]
     primaries = [o for mode, o in counted["loads"] if mode == "MULTIRUN"]
     seeds = [0, 1, 2] if sweep else [0]
-    times = 2 if sweep else 1
+    times = 3 if sweep else 1
     assert len(jobs) == times * len(seeds) and all(jobs.count(j) == times for j in jobs), counted["loads"]
     # the sweep's table of its study rows names each run's design: each shipped design composed once
     designs = sorted(tuple(o) for o in NAMED.values()) if sweep else []

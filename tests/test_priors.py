@@ -15,9 +15,10 @@ from demon_lab import resources
 from demon_lab.core import losses
 from demon_lab.data.datasets import SyntheticDataset
 from demon_lab.nets.chain import DeMoN
+from demon_lab.pipeline.kinds import DepthMotionStage, FlowStage, IterativeStage, RefineStage
 from demon_lab.pipeline.stages import priors as pair_priors
 from demon_lab.pipeline.stages.base import StageModule
-from demon_lab.pipeline.stages.kinds import DepthMotionStage, FlowStage, IterativeStage, RefineStage
+from tests.jobs import settings
 
 SIZE = (96, 128)  # the cpu scale's, where the 5-point motion finds its solutions
 
@@ -125,7 +126,6 @@ def test_a_stage_computes_the_same_with_its_pairs_priors_as_without(scenes, kind
 def test_a_job_with_priors_draws_its_pairs_with_them(tmp_path):
     """The profile's job warms its training pairs' priors before its first stage, and each batch a stage
     draws carries them: the values the chain computes for that batch."""
-    from demon_lab.pipeline.settings import JobSettings
     from demon_lab.pipeline.stages import training
 
     with initialize_config_dir(str(resources.CONF), version_base="1.3"):
@@ -134,11 +134,11 @@ def test_a_job_with_priors_draws_its_pairs_with_them(tmp_path):
     from demon_lab.pipeline.config import instantiate
     from demon_lab.pipeline.stages.schedule import build_chain
 
-    chain = build_chain(cfg)
+    chain = build_chain(settings(cfg))
     train = [instantiate(e.dataset) for e in cfg.data.train]
     table, computed = pair_priors.warm_priors(train, pair_priors.PairPriors.of(chain), processes=1)
     assert computed == 4 * len(train)  # smoke: 4 scenes per preset
-    batch = next(iter(training.build_datamodule(cfg, JobSettings.of(cfg), 4, 8, priors=table).train_dataloader()))
+    batch = next(iter(training.build_datamodule(settings(cfg), 4, 8, priors=table).train_dataloader()))
     pair = torch.cat([batch["image1"], batch["image2"]], 1)
     assert torch.equal(batch["prior_flow"], chain.prior_flow(pair))
     assert torch.equal(batch["prior_motion"], chain.prior_motion(batch["prior_flow"], batch["intrinsics"],
@@ -156,7 +156,7 @@ def test_held_apart_scoring_reads_each_pairs_priors_once_and_scores_what_the_cha
 
     with initialize_config_dir(str(resources.CONF), version_base="1.3"):
         cfg = compose("config", ["scale=smoke"])
-    from demon_lab.pipeline.stages.kinds import stage_spec
+    from demon_lab.pipeline.kinds import stage_spec
 
     chain = _chain().eval()
     held_apart = SyntheticDataset("synthetic_sun3d", length=3, size=SIZE, split="val", cache_dir=False)

@@ -18,7 +18,7 @@ from demon_lab.core import geometry as geo
 from demon_lab.core import metrics, warping
 from demon_lab.nets import DeMoN
 from demon_lab.nets.chain import depth_motion_net_inputs, flow_net_inputs
-from tests.jobs import cli, client, compose_config, smoke_overrides
+from tests.jobs import cli, client, compose_config, settings, smoke_overrides
 
 K = torch.tensor([[0.89115971, 1.18821287, 0.5, 0.5]])
 
@@ -153,7 +153,7 @@ def test_keys_name_the_weights_by_content(tmp_path):
 
     def keys(*extra):
         cfg = compose_config(smoke_overrides(tmp_path, *extra))
-        return run_key(cfg), [s.key for s in stage_dirs(cfg)]
+        return run_key(settings(cfg)), [s.key for s in stage_dirs(settings(cfg))]
 
     none, with_a, with_moved, with_b = keys(), keys(f"model.weights={a}"), keys(f"model.weights={moved}"), \
         keys(f"model.weights={b}")
@@ -291,7 +291,7 @@ def test_fine_tuning_starts_from_the_weights_and_a_zero_step_stage_keeps_them(tm
     overrides = smoke_overrides(tmp_path, "+experiment=gt_flow_oracle", "oracle=flow", f"model.weights={weights}",
                                 "schedule.stages.flow1.steps=0", "threads=1")
     assert run(compose_config(overrides))["status"] == "finished"
-    flow1, dm1 = stage_dirs(compose_config(overrides))
+    flow1, dm1 = stage_dirs(settings(compose_config(overrides)))
     kept = load_checkpoint(flow1.weights)["flow1"]
     assert all(torch.equal(v, given[f"flow1.{k}"]) for k, v in kept.items())
     tuned = load_checkpoint(dm1.weights)["dm1"]

@@ -15,7 +15,7 @@ import torch
 
 from demon_lab.pipeline.stages.cache import CheckpointError, atomic_torch_save, load_checkpoint
 from demon_lab.pipeline.tracking import version_tags
-from tests.jobs import cli, client, compose_config, smoke_overrides
+from tests.jobs import cli, client, compose_config, settings, smoke_overrides
 
 WRITER = """
 import sys, torch
@@ -58,7 +58,7 @@ def test_truncated_and_foreign_checkpoints_are_one_line_errors(tmp_path):
 def _stage_weights(tmp: Path, *extra: str) -> list[Path]:
     from demon_lab.pipeline.stages.schedule import stage_dirs
 
-    return [d.weights for d in stage_dirs(compose_config(smoke_overrides(tmp, *extra)))]
+    return [d.weights for d in stage_dirs(settings(compose_config(smoke_overrides(tmp, *extra))))]
 
 
 @pytest.mark.slow
@@ -280,39 +280,48 @@ def test_sweep_verdict_does_not_count_failed_attempts_of_jobs_that_finished_sinc
     assert line.endswith("1 job runs FINISHED, 1 FAILED (1 earlier FAILED attempt(s) of jobs that have since FINISHED)")
 
 
-def test_the_sweep_verdict_counts_the_failed_job_returns_not_error_files(tmp_path, monkeypatch, capsys):
-    """The sweep's failures are the JobReturns that the sweeper hands over FAILED (in the sweep's own
-    process, whatever the launcher): an error.txt left in the sweep folder by an earlier sweep is not
-    one, a FAILED return is, listed by its folder; the parent run ends FAILED and the sweep exits 1."""
+def test_the_sweep_verdict_reads_its_own_jobs_records_not_an_earlier_sweeps(tmp_path, monkeypatch, capsys):
+    """Each job leaves its outcome in its folder (``on_job_end``, in the job's process, whatever the
+    launcher); the sweep's end reads its own jobs' records: an error.txt or a FAILED record that an
+    earlier sweep left in the folder is not a failure of this one, a job that returned FAILED is,
+    listed by its folder; the table of its jobs is in launch order; the parent run ends FAILED and the
+    sweep exits 1."""
     from hydra.core.utils import JobReturn, JobStatus
     from omegaconf import OmegaConf
 
     from demon_lab.app.callbacks import MultirunTracking
+    from demon_lab.app.sweep import RECORD
     from demon_lab.pipeline.tracking import TAG, Tracker
 
     monkeypatch.chdir(tmp_path)
     sweep = tmp_path / "multirun" / "default"
-    for name in ("seed=0", "seed=1", "seed=2"):
-        (sweep / name).mkdir(parents=True)
-    (sweep / "seed=2" / "error.txt").write_text("Traceback (an earlier sweep's)\n")
     tracker = Tracker(f"sqlite:///{tmp_path}/mlflow.db", "default", str(tmp_path / "artifacts"))
+
+    def returned(num: int, status: str | None) -> JobReturn:
+        name = f"seed={num}"
+        hydra_cfg = OmegaConf.create({"hydra": {"runtime": {"output_dir": str(sweep / name)}, "job": {"num": num}}})
+        job = JobReturn(overrides=[name], hydra_cfg=hydra_cfg, status=JobStatus.COMPLETED,
+                        cfg=OmegaConf.create({"method": "demon", "iterations": 0}))
+        job._return_value = {"status": status, "run_id": None}
+        return job
+
+    earlier = MultirunTracking()  # an earlier sweep in the same folder: its seed=2 failed
+    earlier.sweep = "earlier"
+    earlier.on_job_end(None, returned(2, "FAILED"))
+    (sweep / "seed=2" / "error.txt").write_text("Traceback (an earlier sweep's)\n")
     callback = MultirunTracking()
     callback.tracker, callback.parent = tracker, tracker.start("sweep", {f"{TAG}kind": "sweep"})
-
-    def returned(name: str, status: JobStatus) -> JobReturn:
-        hydra_cfg = OmegaConf.create({"hydra": {"runtime": {"output_dir": str(sweep / name)}}})
-        return JobReturn(overrides=[name], hydra_cfg=hydra_cfg, status=status)
-
+    callback.sweep = "this"
+    for num, status in ((2, None), (0, None), (1, "FAILED")):  # (a parallel launcher ends them in any order)
+        callback.on_job_end(None, returned(num, status))
+    assert all((sweep / f"seed={n}" / RECORD).is_file() for n in range(3))
     config = OmegaConf.create({"experiment": "no_study", "hydra": {"sweep": {"dir": "multirun/default"}}})
-    callback.on_jobs_returned(config, [returned("seed=0", JobStatus.COMPLETED), returned("seed=1", JobStatus.FAILED)])
-    callback.on_jobs_returned(config, [returned("seed=2", JobStatus.COMPLETED)])
     with pytest.raises(SystemExit) as exited:
         callback.on_multirun_end(config)
     assert exited.value.code == 1
     captured = capsys.readouterr()
     assert captured.err.strip().splitlines() == [
         "error: 1 job(s) of the sweep failed (each folder has error.txt): multirun/default/seed=1"]
-    # the table of the sweep's own jobs, in launch order, the failed one marked
     table = captured.out.split("the sweep's jobs on ")[1].splitlines()
     assert table[1].split()[:2] == ["seed", "status"]
     assert [line.split()[:2] for line in table[3:6]] == [["0", "-"], ["1", "FAILED"], ["2", "-"]]

@@ -16,15 +16,15 @@ import torch
 from hydra import compose, initialize_config_dir
 
 from demon_lab.__main__ import CONF
-from tests.jobs import client, compose_config, smoke_overrides
+from tests.jobs import client, compose_config, settings, smoke_overrides
 
 
 def test_each_stage_kind_carries_its_loss_nets_oracles_and_scores_and_the_rate_schedules_are_implemented():
     from demon_lab.core.losses import WEIGHT_KEYS
     from demon_lab.nets.chain import ORACLES
+    from demon_lab.pipeline.kinds import STAGE_SPECS, StageSpec
     from demon_lab.pipeline.schema import LR_SCHEDULES
     from demon_lab.pipeline.stages.base import learning_rate
-    from demon_lab.pipeline.stages.kinds import STAGE_SPECS, StageSpec
 
     nets = {"flow1", "dm1", "flow2", "dm2", "refine_net"}
     for kind, spec in STAGE_SPECS.items():  # each kind is one class: its own loss, nets, weights, oracles
@@ -86,10 +86,10 @@ def test_train_stage_hands_the_probe_options_to_their_stages(tmp_path, monkeypat
                                  "+schedule.stages.dm1.gt_flow_warmup=0.4"])
         plain = compose("config", ["scale=smoke", f"cache_dir={tmp_path}"])
     for config, expect in ((cfg, (0.75, 0.4)), (plain, (1 / 3, 0.0))):  # (DeMoN's: a third, none)
-        chain = build_chain(config)
-        for stage in stage_dirs(config)[:2]:  # flow1, dm1
+        chain = build_chain(settings(config))
+        for stage in stage_dirs(settings(config))[:2]:  # flow1, dm1
             with pytest.raises(Built):
-                training.train_stage(config, chain, stage, logger=None, progress=False)
+                training.train_stage(settings(config), chain, stage, logger=None, progress=False)
         assert (given["flow"].level5_fade, given["depth_motion"].gt_flow_warmup) == expect
 
 
@@ -113,13 +113,13 @@ def test_train_stage_draws_its_samples_with_the_stage_curriculum(tmp_path, monke
     with initialize_config_dir(CONF, version_base="1.3"):
         cfg = compose("config", ["scale=smoke", f"cache_dir={tmp_path}",
                                  "+schedule.stages.flow1.easy_first=[0.25,0.5]"])
-    chain = build_chain(cfg)
-    for stage in stage_dirs(cfg)[:2]:  # flow1 with the curriculum, dm1 without
+    chain = build_chain(settings(cfg))
+    for stage in stage_dirs(settings(cfg))[:2]:  # flow1 with the curriculum, dm1 without
         with pytest.raises(Built):
-            training.train_stage(cfg, chain, stage, logger=None, progress=False)
+            training.train_stage(settings(cfg), chain, stage, logger=None, progress=False)
     easy, plain = samplers
     assert easy.easy_first == (0.25, 0.5) and plain.easy_first is None
-    datasets = training.build_datamodule(cfg, training.JobSettings.of(cfg), 2, 4).train_sources
+    datasets = training.build_datamodule(settings(cfg), 2, 4).train_sources
     assert [list(o) for o in easy.order] == [list(flow_order(d)) for _, d in datasets]
 
 
@@ -128,9 +128,9 @@ def test_a_flow1_stage_starts_on_fresh_2d_layers_and_trains_on_them(tmp_path, mo
     and seed (weight 0: none after the lead); a flow1 step on a batch of layers has a finite loss that
     the flow net's every parameter gets a gradient from."""
     from demon_lab.data.datasets import LayersDataset
+    from demon_lab.pipeline.kinds import FlowStage
     from demon_lab.pipeline.stages import training
     from demon_lab.pipeline.stages.base import StageModule
-    from demon_lab.pipeline.stages.kinds import FlowStage
     from demon_lab.pipeline.stages.schedule import build_chain, stage_dirs
 
     class Built(Exception):
@@ -146,10 +146,10 @@ def test_a_flow1_stage_starts_on_fresh_2d_layers_and_trains_on_them(tmp_path, mo
     with initialize_config_dir(CONF, version_base="1.3"):
         cfg = compose("config", ["scale=smoke", f"cache_dir={tmp_path}", "seed=3",
                                  "+schedule.stages.flow1.layers_first=0.5"])
-    chain = build_chain(cfg)
-    for stage in stage_dirs(cfg)[:2]:  # flow1 with the layers, dm1 without
+    chain = build_chain(settings(cfg))
+    for stage in stage_dirs(settings(cfg))[:2]:  # flow1 with the layers, dm1 without
         with pytest.raises(Built):
-            training.train_stage(cfg, chain, stage, logger=None, progress=False)
+            training.train_stage(settings(cfg), chain, stage, logger=None, progress=False)
     layered, plain = (loader.sampler for loader in loaders)
     sources = loaders[0].dataset.datasets
     assert isinstance(sources[-1], LayersDataset) and sources[-1].size == tuple(cfg.data.size)
@@ -186,9 +186,9 @@ def test_restarts_screen_starts_of_flow1_and_the_stage_continues_from_the_best(t
             cfg = compose("config", ["scale=smoke", f"cache_dir={tmp_path / str(len(list(tmp_path.iterdir())))}",
                                      "schedule.stages.flow1.steps=3", *extra])
         torch.manual_seed(0)
-        chain = build_chain(cfg)
-        stage = stage_dirs(cfg)[0]
-        training.train_stage(cfg, chain, stage, logger=None, progress=False) if logger is None else \
+        chain = build_chain(settings(cfg))
+        stage = stage_dirs(settings(cfg))[0]
+        training.train_stage(settings(cfg), chain, stage, logger=None, progress=False) if logger is None else \
             _train_with(training, cfg, chain, stage, logger)
         return chain.flow1.state_dict(), stage
 
@@ -215,7 +215,7 @@ def _train_with(training, cfg, chain, stage, logger):
     import unittest.mock
 
     with unittest.mock.patch.object(training.L.Trainer, "__init__", without_logger):
-        training.train_stage(cfg, chain, stage, logger=logger, progress=False)
+        training.train_stage(settings(cfg), chain, stage, logger=logger, progress=False)
 
 
 @pytest.mark.slow

@@ -1,6 +1,7 @@
 """Hydra callbacks: one MLflow parent run per multirun, the study's report on it, the sweep's verdict.
 
-``on_sweep_checked`` (called by demon_lab's sweeper once every job of the sweep is checked) creates
+``on_multirun_start`` (Hydra calls it before the sweeper starts) checks every job of the sweep
+(:func:`demon_lab.app.sweep.check_sweep`: one line and exit status 2 on the first bad one), then creates
 the tracking store and the experiment once, before any job starts (parallel jobs racing to create a
 fresh SQLite database is a known MLflow failure), and the parent run; with ``tracking=local_server``
 it starts the sweep's one MLflow server. ``on_job_start`` hands the parent run id and the server's
@@ -11,10 +12,11 @@ The same sweep command issued again (after a kill, a failure or a cluster pre-em
 the same parent run, so its children are every job of the sweep: the finished ones (skipped this
 time) and the ones run now.
 
-A failing job never stops the sweep: Hydra ends it ``FAILED`` (``demon_lab.app.job.main_task``) and
-the sweeper launches the rest, handing each batch's JobReturns to ``on_jobs_returned`` in the
-sweep's own process, whatever the launcher (:mod:`demon_lab.app.sweeper`). ``on_multirun_end``
-attaches the study's report (its tables and figures, from every FINISHED run in the store:
+A failing job never stops the sweep: it records its failure and returns
+(``demon_lab.app.job.main_task``), and Hydra's basic sweeper launches the rest. ``on_job_end``, in the
+job's own process, leaves the job's outcome in its folder (:func:`demon_lab.app.sweep.write_record`),
+marked with the sweep's id; ``on_multirun_end``, in the sweep's process, reads its jobs' records
+(:mod:`demon_lab.app.sweep`), attaches the study's report (its tables and figures, from every FINISHED run in the store:
 ``report/`` in the parent run's artifacts, so the dashboard shows it), prints the table of the
 sweep's own jobs and logs it on the parent run (``jobs.txt``), lists the jobs that failed this time,
 marks the parent FINISHED or FAILED and exits non-zero if any failed.
@@ -24,15 +26,12 @@ from __future__ import annotations
 
 import logging
 import sys
-from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from hydra.core.utils import JobReturn, JobStatus
+from hydra.core.utils import JobReturn
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig
-
-from demon_lab.pipeline.methods import method
 
 log = logging.getLogger(__name__)
 
@@ -41,8 +40,8 @@ class MultirunTracking(Callback):
     def __init__(self) -> None:
         self.tracker = None
         self.parent: str | None = None
-        self.failed: list[str] = []  # the folders of this sweep's failed jobs
-        self.jobs: list[dict[str, Any]] = []  # every job of this sweep: overrides, status, run id, pass
+        self.sweep: str | None = None  # this sweep's id, which its jobs' records carry
+        self.jobs: list[dict[str, Any]] = []  # this sweep's jobs: overrides, status, run id, pass (from their records)
         self.server = None
         self.served: str | None = None  # the address of self.server, which travels with the jobs
 
@@ -52,13 +51,21 @@ class MultirunTracking(Callback):
         return {**self.__dict__, "tracker": None, "server": None}
 
     def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
-        self.failed, self.jobs, self.parent = [], [], None
+        """Before the sweeper starts: every job of the sweep checked (one line and exit status 2 on the
+        first bad one, before any job starts or any run is created), then the local server, if the
+        sweep asks for one, and the sweep's parent run (a sweep issued again continues its run)."""
+        import uuid
 
-    def on_sweep_checked(self, config: DictConfig, **kwargs: Any) -> None:
-        """Once the sweeper has checked every job (:mod:`demon_lab.app.sweeper`), before the first
-        launch: the local server, if the sweep asks for one, and the sweep's parent run (a sweep
-        issued again continues its run)."""
+        from hydra.core.global_hydra import GlobalHydra
+
+        from demon_lab.app.sweep import check_sweep
         from demon_lab.pipeline.settings import TrackingSettings
+
+        self.parent, self.sweep = None, uuid.uuid4().hex
+        error = check_sweep(config, GlobalHydra.instance().config_loader())
+        if error:
+            print(f"error: {error}", file=sys.stderr, flush=True)
+            sys.exit(2)
         from demon_lab.pipeline.tracking import TAG, Tracker
 
         server = TrackingSettings.of(config.tracking, "tracking").server
@@ -99,30 +106,26 @@ class MultirunTracking(Callback):
         SWEEP_SERVER.set(self.served)
 
     def on_job_end(self, config: DictConfig, job_return: JobReturn, **kwargs: Any) -> None:
+        """In the job's process, after the task: in a sweep, the job's outcome in its folder, for the
+        sweep's end (:func:`demon_lab.app.sweep.write_record`)."""
         from demon_lab.app.job import PARENT_RUN, SWEEP_SERVER
+        from demon_lab.app.sweep import write_record
 
         PARENT_RUN.set(None)
         SWEEP_SERVER.set(None)
-
-    def on_jobs_returned(self, config: DictConfig, job_returns: Sequence[JobReturn], **kwargs: Any) -> None:
-        """In the sweep's process, after each batch (:mod:`demon_lab.app.sweeper`): the failed jobs'
-        folders, each with its ``error.txt``, as the command line shows them."""
-        for r in job_returns:
-            returned = r.return_value if r.status == JobStatus.COMPLETED and isinstance(r._return_value, dict) else {}
-            cfg = r.cfg  # (None where Hydra could not compose the job)
-            chain = cfg is None or method(cfg.method).scores_passes  # (a classical method's summary has no passes)
-            self.jobs.append({"overrides": list(r.overrides or []), "run_id": returned.get("run_id"),
-                              "status": returned.get("status") or ("FAILED" if r.status == JobStatus.FAILED else "-"),
-                              "pass": ("-" if cfg is None else cfg.iterations) if chain else "baseline"})
-            if r.status == JobStatus.FAILED:
-                folder = Path(r.hydra_cfg.hydra.runtime.output_dir)
-                self.failed.append(str(folder.relative_to(Path.cwd()) if folder.is_relative_to(Path.cwd())
-                                       else folder))
+        if self.sweep is not None and job_return.hydra_cfg is not None:
+            write_record(job_return, self.sweep)
 
     def on_multirun_end(self, config: DictConfig, **kwargs: Any) -> None:
+        """In the sweep's process, after its last job: its jobs' records read, the study's report on the
+        parent run, the table of its jobs, the parent FINISHED or FAILED, the failed jobs' folders
+        listed and exit status 1 if any failed."""
+        from demon_lab.app.sweep import read_records
         from demon_lab.pipeline.tracking import TAG
 
-        failed = sorted(self.failed)
+        records = read_records(config.hydra.sweep.dir, self.sweep) if self.sweep is not None else []
+        self.jobs = [{k: r[k] for k in ("overrides", "run_id", "status", "pass")} for r in records]
+        failed = sorted(_shown(r["folder"]) for r in records if r["status"] == "FAILED")
         if self.tracker is not None and self.parent is not None:
             children = self.tracker.children(self.parent)
             counts = {s: sum(1 for r in children if r.info.status == s) for s in ("FINISHED", "FAILED", "RUNNING")}
@@ -181,3 +184,8 @@ class MultirunTracking(Callback):
             return
         log.info("study %s: its report is on the sweep run %s (%d artifacts under report/)", study, self.parent,
                  len(paths))
+
+
+def _shown(folder: Path) -> str:
+    """A job's folder as the command line shows it: relative to the working directory where under it."""
+    return str(folder.relative_to(Path.cwd()) if folder.is_relative_to(Path.cwd()) else folder)

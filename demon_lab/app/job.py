@@ -40,14 +40,7 @@ SWEEP_SERVER: ContextVar[str | None] = ContextVar("demon_lab_sweep_server", defa
 server logs through it instead of starting its own."""
 
 
-class JobFailed(Exception):
-    """A job of a sweep failed: its one line is printed and its traceback is in ``error.txt`` in its
-    folder. :func:`main_task` raises it so that Hydra ends the job ``JobStatus.FAILED`` and the sweep
-    counts it (:mod:`demon_lab.app.sweeper`); it holds the line alone, so it travels back from a
-    joblib or SLURM process and keeps nothing of the job alive."""
-
-
-def job_tags(cfg: DictConfig, key: str) -> dict[str, str]:
+def job_tags(job: JobSettings, key: str) -> dict[str, str]:
     """The job run's tags: its identity, the study row it belongs to, the code, versions and device."""
     import platform
 
@@ -56,9 +49,9 @@ def job_tags(cfg: DictConfig, key: str) -> dict[str, str]:
     from demon_lab.pipeline.tracking import TAG, git_state, version_tags
 
     return {
-        f"{TAG}run_key": key, f"{TAG}experiment": cfg.experiment, f"{TAG}row": str(cfg.row),
-        f"{TAG}seed": str(cfg.seed), f"{TAG}scale": str(cfg.scale.name), f"{TAG}data": str(cfg.data.name),
-        f"{TAG}iterations": str(cfg.iterations), f"{TAG}oracle": str(cfg.oracle), f"{TAG}method": str(cfg.method),
+        f"{TAG}run_key": key, f"{TAG}experiment": job.experiment, f"{TAG}row": str(job.row),
+        f"{TAG}seed": str(job.seed), f"{TAG}scale": str(job.scale.name), f"{TAG}data": str(job.config["data"]["name"]),
+        f"{TAG}iterations": str(job.iterations), f"{TAG}oracle": str(job.oracle), f"{TAG}method": str(job.method),
         **{f"{TAG}{k}": v for k, v in git_state().items()}, **version_tags(),
         f"{TAG}torch": torch.__version__, f"{TAG}cuda": str(torch.version.cuda),
         f"{TAG}device": "cuda" if torch.cuda.is_available() else "cpu", f"{TAG}host_python": platform.python_version(),
@@ -81,13 +74,13 @@ def run(cfg: DictConfig) -> dict[str, Any]:
         from demon_lab.core.execution import global_rank
         from demon_lab.pipeline.stages.training import prepare_chain
 
-        if job.trainer.world > 1 and global_rank(cfg) != 0:  # a DDP worker: trains; rank 0 tracks and evaluates
-            prepare_chain(cfg, None, progress=False)
+        if job.trainer.world > 1 and global_rank(job) != 0:  # a DDP worker: trains; rank 0 tracks and evaluates
+            prepare_chain(job, None, progress=False)
             return {"status": "worker"}
     from demon_lab.pipeline.identity import run_key
     from demon_lab.pipeline.tracking import Tracker, flatten
 
-    key = run_key(cfg)
+    key = run_key(job)
     tracker = Tracker(job.tracking.uri, job.experiment, job.tracking.artifact_dir,
                       local_server=job.tracking.server is not None)
     if not job.force:
@@ -102,17 +95,17 @@ def run(cfg: DictConfig) -> dict[str, Any]:
     run_id = next((r for r in (persisted, tracker.find_interrupted(key)) if r and tracker.resumable(r, key)), None)
     if run_id is not None:
         tracker.resume(run_id)
-        tracker.set_tags(run_id, job_tags(cfg, key))  # the code that finishes it (same run key)
+        tracker.set_tags(run_id, job_tags(job, key))  # the code that finishes it (same run key)
         log.info("resuming the interrupted run %s (run key %s)", run_id, key)
     else:
-        run_id = tracker.start(f"{cfg.experiment}-{key[:8]}", job_tags(cfg, key), parent_id=_parent_run())
+        run_id = tracker.start(f"{job.experiment}-{key[:8]}", job_tags(job, key), parent_id=_parent_run())
     if record is not None:
         record.parent.mkdir(parents=True, exist_ok=True)
         record.write_text(run_id + "\n")
     try:
-        tracker.log_params(run_id, flatten(OmegaConf.to_container(cfg, resolve=True)))
+        tracker.log_params(run_id, flatten(job.config))
         tracker.log_text(run_id, OmegaConf.to_yaml(cfg, resolve=True), "config.yaml")
-        result = _train_and_evaluate(cfg, tracker, run_id)
+        result = _train_and_evaluate(job, tracker, run_id)
         tracker.finish(run_id, "FINISHED")
         _print_study_rows(cfg)
         return {"status": "finished", "run_id": run_id, "run_key": key, **result}
@@ -121,20 +114,20 @@ def run(cfg: DictConfig) -> dict[str, Any]:
         raise
 
 
-def _train_and_evaluate(cfg: DictConfig, tracker, run_id: str) -> dict[str, Any]:
+def _train_and_evaluate(job: JobSettings, tracker, run_id: str) -> dict[str, Any]:
     """The job's work in its run ``run_id``: the chain's stages (:func:`_train`), the test sets
     scored, and the results logged and printed (:func:`_record`)."""
     from demon_lab.pipeline.evaluate import evaluate_test_sets
 
-    chain, stages, figures = _train(cfg, tracker, run_id) if method(cfg.method).runs_chain else (None, [], {})
-    refined = _has_refinement(cfg, [s.name for s in stages])
-    results = evaluate_test_sets(cfg, chain, refined)
+    chain, stages, figures = _train(job, tracker, run_id) if method(job.method).runs_chain else (None, [], {})
+    refined = _has_refinement(job, [s.name for s in stages])
+    results = evaluate_test_sets(job, chain, refined)
     summary = {r.name: r.summary for r in results}
-    _record(cfg, tracker, run_id, results, refined)
+    _record(job, tracker, run_id, results, refined)
     return {"summary": summary, "figures": figures}
 
 
-def _train(cfg: DictConfig, tracker, run_id: str) -> tuple[Any, list, dict[str, dict[str, float]]]:
+def _train(job: JobSettings, tracker, run_id: str) -> tuple[Any, list, dict[str, dict[str, float]]]:
     """The chain with its scheduled stages cached or trained; a stage that trains gets a child run of
     ``run_id`` (a killed one resumes its own) with Lightning's MLFlowLogger attached for its loss
     curves. The stages' keys and figures go to the job's run."""
@@ -158,7 +151,7 @@ def _train(cfg: DictConfig, tracker, run_id: str) -> tuple[Any, list, dict[str, 
 
     try:
         with process_tracking_uri():  # MLFlowLogger sets it process-wide: keep it this job's business
-            chain, stages, figures = prepare_chain(cfg, on_stage, progress=sys.stderr.isatty())
+            chain, stages, figures = prepare_chain(job, on_stage, progress=sys.stderr.isatty())
     except BaseException as e:
         for child in stage_runs:  # the stage that raised (its logger may have ended it FAILED), not the
             if tracker.client.get_run(child).info.status != "FINISHED":  # stages that finished before it
@@ -172,34 +165,33 @@ def _train(cfg: DictConfig, tracker, run_id: str) -> tuple[Any, list, dict[str, 
     return chain, stages, figures
 
 
-def _has_refinement(cfg: DictConfig, stages: list[str]) -> bool:
+def _has_refinement(job: JobSettings, stages: list[str]) -> bool:
     """Whether the chain's refinement net is trained (its rows are scored): scheduled, or, for an
     untrained chain (``train=false``), in ``model.weights`` where the file is given."""
-    refined = method(cfg.method).scores_passes and (not cfg.train or "refine" in stages)
-    if refined and not cfg.train and cfg.model.weights:
+    refined = method(job.method).scores_passes and (not job.train or "refine" in stages)
+    if refined and not job.train and job.model.weights:
         from demon_lab.pipeline.weights import read_nets
 
-        refined = "refine_net" in read_nets(cfg.model.weights, mmap=True)
+        refined = "refine_net" in read_nets(job.model.weights, mmap=True)
     return refined
 
 
-def _record(cfg: DictConfig, tracker, run_id: str, results: list, refined: bool) -> None:
+def _record(job: JobSettings, tracker, run_id: str, results: list, refined: bool) -> None:
     """The test sets' results in the job's run (metrics, per-sample rows, pixel-error histograms,
     pictures, the table) and the table printed."""
     from demon_lab.reporting.tables import results_table
     from demon_lab.reporting.visualize import save_visuals
 
-    job = JobSettings.of(cfg)
     summary = {r.name: r.summary for r in results}
     tracker.log_metrics(run_id, {f"test/{name}/{k}": v for name, values in summary.items() for k, v in values.items()})
-    scored = method(cfg.method)
+    scored = method(job.method)
     priors = any(f"priors/{k}" in values for values in summary.values() for k in ("epe", "tran_deg"))
     passes = scored.passes(job.iterations, refined, priors)  # (the profile's priors alone first)
     if scored.scores_passes:
-        what = f"{cfg.iterations} iterations{', oracle ' + str(cfg.oracle) if cfg.oracle else ''}"
-        pictured = "refined depth" if refined else f"pass {cfg.iterations}"
+        what = f"{job.iterations} iterations{', oracle ' + str(job.oracle) if job.oracle else ''}"
+        pictured = "refined depth" if refined else f"pass {job.iterations}"
     else:
-        what, pictured = f"method {cfg.method}", cfg.method
+        what, pictured = f"method {job.method}", job.method
     table = results_table(summary, passes)
     with tempfile.TemporaryDirectory() as tmp:
         root = Path(tmp)
@@ -213,7 +205,7 @@ def _record(cfg: DictConfig, tracker, run_id: str, results: list, refined: bool)
                 tracker.log_artifact(run_id, root / name)
     tracker.log_text(run_id, table + "\n", "results.txt")
     # the job's result: printed (not logged), so it shows whatever the logging configuration
-    print(f"[demon_lab] results (scale {cfg.scale.name}, seed {cfg.seed}, {what}; {UNITS_NOTE}):\n{table}\n",
+    print(f"[demon_lab] results (scale {job.scale.name}, seed {job.seed}, {what}; {UNITS_NOTE}):\n{table}\n",
           flush=True)
 
 
@@ -288,12 +280,12 @@ def known_errors() -> tuple[type[BaseException], ...]:
 def main_task(cfg: DictConfig) -> dict[str, Any] | None:
     """Hydra task. A single run exits non-zero with one line on a configuration, data,
     tracking-store or checkpoint error or diverged training, and with the traceback on anything
-    else. In a multirun a failing job never stops the sweep: its run is
-    FAILED with the error recorded, it prints one line, leaves ``error.txt`` (with the traceback)
-    in its output folder and raises :class:`JobFailed`, so that Hydra ends it ``FAILED``; the sweep
-    goes on (:mod:`demon_lab.app.sweeper`), and its end lists the failures and exits non-zero
-    (:class:`demon_lab.app.callbacks.MultirunTracking`). Returns the job's status and run id (what
-    the sweep's table of its jobs reads)."""
+    else. In a multirun a failing job never stops the sweep: its run is FAILED with the error
+    recorded, it prints one line, leaves ``error.txt`` (with the traceback) in its output folder and
+    returns status ``FAILED`` rather than raising, since Hydra's basic sweeper stops at the first job
+    that raises; the sweep goes on, and its end lists the failures and exits non-zero
+    (:mod:`demon_lab.app.sweep`, :class:`demon_lab.app.callbacks.MultirunTracking`). Returns the job's
+    status and run id (what the sweep's table of its jobs reads)."""
     import traceback
 
     job_dir = _hydra_output_dir(multirun_only=True)
@@ -301,7 +293,6 @@ def main_task(cfg: DictConfig) -> dict[str, Any] | None:
     if marker is not None:
         marker.unlink(missing_ok=True)
     server = None
-    failure = None
     try:
         from demon_lab.core.execution import global_rank
 
@@ -327,10 +318,8 @@ def main_task(cfg: DictConfig) -> dict[str, Any] | None:
         line = str(e).strip().splitlines()[0] if str(e).strip() else ""
         what = line if known else f"{type(e).__name__}: {line}"
         print(f"error: {what} (traceback in {marker})", file=sys.stderr, flush=True)
-        failure = JobFailed(what)  # raised outside this block, so that it holds nothing of e
+        return {"status": "FAILED", "run_id": None}
     finally:
         if server is not None:
             server.stop()
-    if failure is not None:
-        raise failure
     return {"status": result.get("status"), "run_id": result.get("run_id")}

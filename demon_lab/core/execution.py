@@ -130,13 +130,13 @@ def resolve_accelerator(accelerator: str) -> str:
     return accelerator
 
 
-def evaluation_device(cfg) -> torch.device:
+def evaluation_device(job) -> torch.device:
     """Where a job evaluates the chain: the device type it trains on (``trainer.accelerator``),
     this process's GPU (``LOCAL_RANK``) when that is CUDA; the CPU, with a log line, when that
     device is not here (every stage cached or ``train=false``: nothing trained on it)."""
-    kind = resolve_accelerator(cfg.trainer.accelerator)
+    kind = resolve_accelerator(job.trainer.accelerator)
     if (kind == "cuda" and not torch.cuda.is_available()) or (kind == "mps" and not _mps_available()):
-        log.info("trainer.accelerator=%s: no %s device here, evaluating on the CPU", cfg.trainer.accelerator, kind)
+        log.info("trainer.accelerator=%s: no %s device here, evaluating on the CPU", job.trainer.accelerator, kind)
         return torch.device("cpu")
     if kind == "cuda":
         local = os.environ.get("LOCAL_RANK", "0")
@@ -226,12 +226,13 @@ def peak_memory(device: torch.device) -> Iterator[dict[str, float]]:
         out["peak_gib"] = torch.cuda.max_memory_allocated(device) / 2**30
 
 
-def world_size(cfg: Any) -> int:
-    """The processes of a job: ``trainer.devices x trainer.num_nodes``."""
-    return int(cfg.trainer.devices) * int(cfg.trainer.num_nodes)
+def world_size(job: Any) -> int:
+    """The processes of a job (its settings, or anything with their ``trainer`` section):
+    ``trainer.devices x trainer.num_nodes``."""
+    return int(job.trainer.devices) * int(job.trainer.num_nodes)
 
 
-def global_rank(cfg: Any) -> int:
+def global_rank(job: Any) -> int:
     """This process's rank in a multi-process (DDP) job, as Lightning's cluster environments read it:
     torchrun's (``TorchElasticEnvironment``), SLURM's under srun or submitit (``SLURMEnvironment``),
     or, in a process that Lightning's launcher started for a local multi-device run
@@ -242,7 +243,7 @@ def global_rank(cfg: Any) -> int:
         if environment.detect():
             return environment().global_rank()
     local = LightningEnvironment()
-    return local.node_rank() * int(cfg.trainer.devices) + local.local_rank()
+    return local.node_rank() * int(job.trainer.devices) + local.local_rank()
 
 
 def processes_launched_outside() -> bool:

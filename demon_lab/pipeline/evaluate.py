@@ -127,19 +127,18 @@ class TestSetResult:
     kept: list[dict[str, Any]] = field(default_factory=list)
 
 
-def evaluate_test_sets(cfg, chain: DeMoN | None, refined: bool) -> list[TestSetResult]:
-    """Score ``cfg.method`` (the chain or a classical baseline) on every set of ``cfg.data.test``.
+def evaluate_test_sets(job: JobSettings, chain: DeMoN | None, refined: bool) -> list[TestSetResult]:
+    """Score the job's method (the chain or a classical baseline) on every set of ``data.test``.
 
     ``chain``: the trained chain (``method=demon``; ``base_mat_f`` reads its flow), None for the
     other baselines; ``refined``: whether the refinement net is trained (its rows are scored)."""
     from demon_lab.baselines import summarize_baseline
     from demon_lab.pipeline.config import instantiate
 
-    job = JobSettings.of(cfg)
     scored = method(job.method)
     keep = max(job.eval.visualize, job.eval.point_clouds)
     if scored.scores_passes and chain is not None:  # on the device it trained on (Lightning hands it back on the CPU)
-        chain = chain.to(execution.evaluation_device(cfg))
+        chain = chain.to(execution.evaluation_device(job))
     results = []
     for entry in job.data.test:
         dataset = instantiate(entry)

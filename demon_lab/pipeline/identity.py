@@ -30,6 +30,7 @@ A rendered synthetic data set's cache folder has a key of its own, from the gene
 
 from __future__ import annotations
 
+import copy
 import hashlib
 import json
 import os
@@ -71,7 +72,7 @@ NEUTRAL_THREADS = 2
 the thread count entered them was measured on (the GOLDEN keys keep their values)."""
 
 
-def cpu_threads(cfg) -> dict[str, int]:
+def cpu_threads(job) -> dict[str, int]:
     """``{"threads": n}`` for a job whose nets compute on the CPU, with n the threads they compute with
     (``threads``, else torch's count at this moment: the library's default, or the share a parallel
     launcher gave the job), and ``{}`` where n is :data:`NEUTRAL_THREADS` or the nets run on an
@@ -79,10 +80,10 @@ def cpu_threads(cfg) -> dict[str, int]:
     stage's steps, its weights depend on n (reports/timing/threads_stage_weights.txt: the profile's
     dm1 after 10 steps differs by 1e-3), so the stage and run keys hold it; ``threads`` itself stays in
     :data:`NON_SEMANTIC` (the output folder, the sweep key)."""
-    if resolve_accelerator(cfg.trainer.accelerator) != "cpu":
+    if resolve_accelerator(job.trainer.accelerator) != "cpu":
         return {}
-    if cfg.threads is not None:
-        n = int(cfg.threads)
+    if job.threads is not None:
+        n = int(job.threads)
     else:
         import torch
 
@@ -199,35 +200,34 @@ def plugin_identity(node: Mapping[str, Any]) -> dict[str, Any]:
     return {"class": str(node["_target_"]), "args": args, "source": source_digest(plugin_class(node["_target_"]))}
 
 
-def describe_stage(cfg, name: str, upstream: dict[str, str]) -> dict[str, Any]:
-    """Everything that determines the result of stage ``name`` of ``cfg``'s schedule (what its key
-    hashes: :func:`stage_key`), ``upstream`` the keys of the stages before it."""
-    from omegaconf import OmegaConf
-
-    from demon_lab.pipeline.stages.kinds import stage_spec
-
-    plain = lambda node: OmegaConf.to_container(node, resolve=True)  # noqa: E731
-    spec = stage_spec(cfg, name)
+def describe_stage(job, name: str, upstream: dict[str, str]) -> dict[str, Any]:
+    """Everything that determines the result of stage ``name`` of the job's schedule (what its key
+    hashes: :func:`stage_key`), ``upstream`` the keys of the stages before it. ``job``: the job's
+    settings (:class:`demon_lab.pipeline.settings.JobSettings`); the stage's own config, the model's,
+    the loss weights and the data are hashed as the config writes them (``job.config``)."""
+    config = copy.deepcopy(dict(job.config))
+    schedule, data = config["schedule"], config["data"]
+    spec = job.stages[name]
     return {
         "stage": name,
-        "stage_config": plain(cfg.schedule.stages[name]),
-        "optimisation": {k: cfg.schedule[k] for k in ("lr_schedule", "weight_decay", "grad_clip")},
-        "batch_size": spec.batch_size or cfg.data.batch_size,
-        "model": {**_stage_model(model_identity(plain(cfg.model)), name, list(cfg.schedule.stages)),
-                  "size": list(cfg.data.size)},  # weights by content
+        "stage_config": schedule["stages"][name],
+        "optimisation": {k: schedule[k] for k in ("lr_schedule", "weight_decay", "grad_clip")},
+        "batch_size": spec.batch_size or data["batch_size"],
+        "model": {**_stage_model(model_identity(config["model"]), name, list(schedule["stages"])),
+                  "size": list(data["size"])},  # weights by content
         # Only the weights this stage's loss reads: ablations that change another stage's terms
         # (no_normals for the flow stages, say, or no_sig for a flow stage without sig terms)
         # share this stage.
-        "loss": {k: float(cfg.loss[k]) for k in spec.weight_keys()},
-        "train_data": without_render_cache(plain(cfg.data.train)),  # not where its scenes are cached
+        "loss": {k: float(config["loss"][k]) for k in spec.weight_keys()},
+        "train_data": without_render_cache(data["train"]),  # not where its scenes are cached
         # the held-apart sets that choose the kept nets (keep_best; left out where the stage keeps its last)
-        **({"keep_best_on": without_render_cache(plain(cfg.data.val))} if spec.keep_best else {}),
-        "seed": cfg.seed,
+        **({"keep_best_on": without_render_cache(data["val"])} if spec.keep_best else {}),
+        "seed": config["seed"],
         "upstream": dict(upstream),
         # the nets' precision where the stage trains (a stage of 0 steps keeps its nets as they are)
-        **leave_out_neutral({"precision": normalize_precision(cfg.precision)} if int(spec.steps) > 0 else {}),
+        **leave_out_neutral({"precision": normalize_precision(config["precision"])} if int(spec.steps) > 0 else {}),
         # the CPU threads it trains with (their rounding parts the weights), but for the neutral 2
-        **(cpu_threads(cfg) if int(spec.steps) > 0 else {}),
+        **(cpu_threads(job) if int(spec.steps) > 0 else {}),
     }
 
 
@@ -251,13 +251,10 @@ def _stage_model(model: dict[str, Any], name: str, names: list[str]) -> dict[str
     return out
 
 
-def semantic_config(cfg) -> dict[str, Any]:
+def semantic_config(job) -> dict[str, Any]:
     """The resolved config as plain containers, without the :data:`NON_SEMANTIC` keys, with
     bundled files named rather than located (:func:`portable`)."""
-    from omegaconf import OmegaConf
-
-    plain = OmegaConf.to_container(cfg, resolve=True)
-    assert isinstance(plain, dict)
+    plain = copy.deepcopy(dict(job.config))
     for dotted in NON_SEMANTIC:
         node = plain
         *parents, leaf = dotted.split(".")
@@ -275,13 +272,13 @@ def semantic_config(cfg) -> dict[str, Any]:
     if not method(plain.get("method", "demon")).runs_chain:
         del plain["precision"]  # the methods that run no net compute the same in any precision
     else:
-        plain.update(cpu_threads(cfg))  # nor with any thread count
+        plain.update(cpu_threads(job))  # nor with any thread count
     return portable(leave_out_neutral(plain))
 
 
-def run_key(cfg) -> str:
-    """A job's identity: its semantic config and :func:`versions`."""
-    return digest({"config": semantic_config(cfg), **versions()})
+def run_key(job) -> str:
+    """A job's identity (``job``: its settings): its semantic config and :func:`versions`."""
+    return digest({"config": semantic_config(job), **versions()})
 
 
 def stage_key(description: Mapping[str, Any]) -> str:

@@ -4,7 +4,7 @@ Hydra composes ``conf/`` into a DictConfig and :func:`demon_lab.pipeline.validat
 checks it, one line per error. The pipeline then reads the chain's options through
 :class:`ModelSpec` rather than through the raw config: every key is in ``conf/model/demon.yaml``, so
 its defaults are written there and nowhere else. Each training stage is typed by its kind's class
-(:mod:`demon_lab.pipeline.stages.kinds`).
+(:mod:`demon_lab.pipeline.kinds`).
 """
 
 from __future__ import annotations

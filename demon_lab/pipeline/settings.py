@@ -9,8 +9,8 @@ machine's devices can run, and the nets a stage of 0 steps keeps.
 
 A section's fields have no defaults where every config sets the key; a field with a default is a
 key a config may leave out (``tracking.server``, ``data.val``). The model (:class:`ModelSpec`) and the
-training stages (:class:`~demon_lab.pipeline.stages.kinds.StageSpec`, by kind) in
-:mod:`demon_lab.pipeline.schema` and :mod:`demon_lab.pipeline.stages.kinds`; the baselines' parameters by
+training stages (:class:`~demon_lab.pipeline.kinds.StageSpec`, by kind) in
+:mod:`demon_lab.pipeline.schema` and :mod:`demon_lab.pipeline.kinds`; the baselines' parameters by
 :class:`demon_lab.baselines.methods.BaselineConfig`; the loss weights by
 :func:`demon_lab.core.losses.check_weights`. Why not Hydra's structured configs: their errors span
 several lines with the config's key path and object type, and they check types, not ranges or rules
@@ -31,9 +31,9 @@ from demon_lab.baselines.methods import BaselineConfig
 from demon_lab.core.losses import check_weights
 from demon_lab.nets.chain import ORACLES
 from demon_lab.pipeline.config import ConfigError, expect_choice, expect_flag, expect_int, expect_positive
-from demon_lab.pipeline.methods import METHODS
+from demon_lab.pipeline.kinds import StageSpec, stage_spec
+from demon_lab.pipeline.methods import METHODS, method
 from demon_lab.pipeline.schema import LR_SCHEDULES, ModelSpec
-from demon_lab.pipeline.stages.kinds import StageSpec, stage_spec
 
 ACCELERATORS = ("auto", "cpu", "gpu", "cuda", "mps")
 TRACKING_SCHEMES = ("sqlite", "http", "https", "postgresql", "mysql", "mssql", "file", "databricks")
@@ -312,7 +312,7 @@ class ScaleSettings(Section):
 @dataclass(frozen=True)
 class ScheduleSettings(Section):
     """``schedule``: the optimiser's settings and the stages (each typed by its kind's
-    :class:`~demon_lab.pipeline.stages.kinds.StageSpec`, :func:`~demon_lab.pipeline.stages.kinds.stage_spec`)."""
+    :class:`~demon_lab.pipeline.kinds.StageSpec`, :func:`~demon_lab.pipeline.kinds.stage_spec`)."""
 
     lr_schedule: str = setting(Choice(LR_SCHEDULES))
     weight_decay: float = setting(Number(allow_zero=True))
@@ -351,15 +351,18 @@ class JobSettings(Section):
     scale: ScaleSettings
     schedule: ScheduleSettings
     stages: Mapping[str, StageSpec]
-    """Each stage's spec by name (:func:`~demon_lab.pipeline.stages.kinds.stage_spec`)."""
+    """Each stage's spec by name (:func:`~demon_lab.pipeline.kinds.stage_spec`)."""
     baseline: BaselineConfig
     loss: Mapping[str, float]
+    config: Mapping[str, Any] = field(default_factory=dict, repr=False, compare=False)
+    """The job's whole config as plain, resolved values: what its keys hash (a key is defined on the
+    config as written, :mod:`demon_lab.pipeline.identity`) and what its run logs. Read, never changed."""
 
     @classmethod
     def of(cls, cfg: DictConfig) -> JobSettings:
         """``cfg`` as settings, or its first error as one ConfigError line."""
         own = cls.values(cfg, "")
-        if own["method"] != "demon" and own["oracle"] is not None:
+        if not method(own["method"]).scores_passes and own["oracle"] is not None:  # (the passes take the oracle)
             raise ConfigError(f"oracle: expected null with method={own['method']} (oracles feed the DeMoN chain), "
                               f"got {own['oracle']!r}")
         try:
@@ -377,7 +380,8 @@ class JobSettings(Section):
             raise ConfigError(str(e)) from None
         return cls(**own, model=model, data=data, schedule=schedule, stages=stages, loss=loss, baseline=baseline,
                    eval=EvalSettings.of(cfg.eval, "eval"), trainer=TrainerSettings.of(cfg.trainer, "trainer"),
-                   tracking=TrackingSettings.of(cfg.tracking, "tracking"), scale=ScaleSettings.of(cfg.scale, "scale"))
+                   tracking=TrackingSettings.of(cfg.tracking, "tracking"), scale=ScaleSettings.of(cfg.scale, "scale"),
+                   config=OmegaConf.to_container(cfg, resolve=True))
 
     def __post_init__(self):
         trained = self.schedule.trained()

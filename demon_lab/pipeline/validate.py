@@ -31,21 +31,21 @@ def _source_key(node: DictConfig, key: str, where: str) -> str:
     return where
 
 
-def _trains(cfg: DictConfig) -> bool:
+def _trains(job: JobSettings) -> bool:
     """Whether the job will train a stage (and so read its training data)."""
-    if not (cfg.train and method(cfg.method).runs_chain):
+    if not (job.train and method(job.method).runs_chain):
         return False
     from demon_lab.pipeline.stages.schedule import stage_dirs
 
-    return not all(stage.done() for stage in stage_dirs(cfg))
+    return not all(stage.done() for stage in stage_dirs(job))
 
 
-def check_paths(cfg: DictConfig) -> None:
+def check_paths(job: JobSettings) -> None:
     """Every file or folder the job reads exists: its test sets, and its training sets when it
     trains a stage the cache lacks. Checked before any rendering, training or tracking."""
-    sources = [(f"data.test[{i}]", entry) for i, entry in enumerate(cfg.data.test)]
-    if _trains(cfg):
-        sources += [(f"data.train[{i}].dataset", entry.dataset) for i, entry in enumerate(cfg.data.train)]
+    sources = [(f"data.test[{i}]", entry) for i, entry in enumerate(job.data.test)]
+    if _trains(job):
+        sources += [(f"data.train[{i}].dataset", entry.dataset) for i, entry in enumerate(job.data.train)]
     for where, node in sources:
         for key in PATH_KEYS:
             if key in node and node[key] is not None and not Path(str(node[key])).exists():
@@ -125,5 +125,5 @@ def validate(cfg: DictConfig, here: bool = True) -> JobSettings:
             _kept_nets(job, name, trained[:i])
     if here:
         _execution(job)
-    check_paths(cfg)
+    check_paths(job)
     return job

@@ -90,15 +90,15 @@ def bare_steps(overrides: Sequence[str], repeats: int, peak: float) -> dict[str,
     from torch.utils.flop_counter import FlopCounterMode
 
     from demon_lab.pipeline.settings import JobSettings
-    from demon_lab.pipeline.stages.schedule import build_chain, scheduled_stages
+    from demon_lab.pipeline.stages.schedule import build_chain
     from demon_lab.pipeline.stages.training import stage_module
 
     cfg = _compose(overrides)
     job = JobSettings.of(cfg)
     out = {}
-    for name in scheduled_stages(cfg):
+    for name in job.schedule.trained():
         torch.manual_seed(0)
-        chain = build_chain(cfg)
+        chain = build_chain(job)
         module = stage_module(job, chain, name)
         mid_stage(module)
         module.freeze_upstream()
@@ -244,7 +244,7 @@ def variant_rows(repeats: int, peak: float) -> list[list[str]]:
     for label, channels_last, compile_nets in (("channels-last", True, False), ("torch.compile", False, True)):
         try:
             torch.manual_seed(0)
-            chain = execution.prepare_nets(build_chain(cfg), channels_last, compile_nets)
+            chain = execution.prepare_nets(build_chain(job), channels_last, compile_nets)
             module = stage_module(job, chain, "flow1")
             mid_stage(module)
             module.train()
@@ -284,7 +284,8 @@ def logging_share(steps: int = 300) -> float:
             TimedLogger.seconds += time.perf_counter() - start
 
     cfg = _compose(DESIGNS["DeMoN's design"])
-    chain = build_chain(cfg)
+    job = JobSettings.of(cfg)
+    chain = build_chain(job)
     batch = training_batch(cfg, chain, 8)
 
     class Repeat(torch.utils.data.Dataset):
@@ -298,7 +299,7 @@ def logging_share(steps: int = 300) -> float:
         tracker = Tracker(f"sqlite:///{tmp}/mlflow.db", "bench", f"{tmp}/artifacts")
         run_id = tracker.start("bench", {})
         logger = TimedLogger(tracking_uri=tracker.uri, run_id=run_id)
-        module = stage_module(JobSettings.of(cfg), chain, "flow1")
+        module = stage_module(job, chain, "flow1")
         trainer = L.Trainer(max_steps=steps, logger=logger, log_every_n_steps=10, enable_checkpointing=False,
                             enable_progress_bar=False, enable_model_summary=False, accelerator="cpu")
         start = time.perf_counter()

@@ -10,7 +10,7 @@ Three tables, each read from where its values are defined, so that the page cann
   the file that sets it (the group's default option, ``conf/config.yaml``, the scale's profile);
   allowed values where that comment lists them (``a | b | c``) or where the key is a group's;
 * each stage kind's options (``schedule.stages.NAME``): the fields of its spec in
-  :mod:`demon_lab.pipeline.stages.kinds`, with their types, defaults and docstrings.
+  :mod:`demon_lab.pipeline.kinds`, with their types, defaults and docstrings.
 
 ``--check`` writes nothing and exits 1 if the page is not what the configs give (the tests run it).
 """
@@ -204,7 +204,7 @@ def _field_docs(cls: type) -> dict[str, str]:
 
 
 def stages_table() -> list[str]:
-    from demon_lab.pipeline.stages.kinds import STAGE_SPECS
+    from demon_lab.pipeline.kinds import STAGE_SPECS
 
     lines = ["| kind | option | type | default | meaning |", "|---|---|---|---|---|"]
     for kind, spec in STAGE_SPECS.items():
@@ -254,7 +254,7 @@ def page() -> str:
         "## Stage options (`schedule.stages.NAME`)",
         "",
         "Each stage of `schedule.stages` is a mapping told apart by its `kind`; its options, types and defaults "
-        "are its kind's class (`demon_lab/pipeline/stages/kinds.py`). `conf/schedule/released.yaml` sets DeMoN's six "
+        "are its kind's class (`demon_lab/pipeline/kinds.py`). `conf/schedule/released.yaml` sets DeMoN's six "
         "stages; an option it leaves out takes the default here, and one its kind does not take is refused.",
         "",
         *stages_table(),

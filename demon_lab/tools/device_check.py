@@ -219,13 +219,13 @@ def part_loop(check: Check, dims: Dims, rates: dict[tuple, float]) -> None:
                         f"data.num_workers={dims.workers}", f"cache_dir={tmp}", f"data.cache_dir={tmp}/data",
                         # 48 scenes per preset at paper scale (its 200,000 are for training, not timing)
                         *(["data.train_length=48"] if dims.scale == "paper" else [])])
-        validate(cfg)
+        job = validate(cfg)
         # the Trainer turns deterministic algorithms on process-wide (deterministic="warn"): put back
         # what the later parts measure with
         saved = torch.are_deterministic_algorithms_enabled(), torch.is_deterministic_algorithms_warn_only_enabled()
         start = time.perf_counter()
         try:
-            _, _, figures = prepare_chain(cfg, progress=False)
+            _, _, figures = prepare_chain(job, progress=False)
         finally:
             torch.use_deterministic_algorithms(saved[0], warn_only=saved[1])
         wall = time.perf_counter() - start
@@ -268,6 +268,7 @@ def profile_worker(out: Path, scale: str, cache: Path) -> None:
     from demon_lab.data.datasets import warm_cache
     from demon_lab.pipeline.config import instantiate
     from demon_lab.pipeline.stages.training import prepare_chain
+    from demon_lab.pipeline.validate import validate
 
     def write(entry):
         with out.open("a") as f:
@@ -280,7 +281,7 @@ def profile_worker(out: Path, scale: str, cache: Path) -> None:
     write({"stage": "render", "seconds": time.perf_counter() - start})
     for stage in STAGES:
         cfg = _compose([*base, f"schedule.until={stage}"])
-        _, _, figures = prepare_chain(cfg, progress=False)
+        _, _, figures = prepare_chain(validate(cfg), progress=False)
         fig = figures[stage]
         write({"stage": stage, "steps": int(cfg.schedule.stages[stage].steps), "seconds": fig["seconds"],
                "steps_per_second": fig["steps_per_second"]})

@@ -128,13 +128,13 @@ def run(overrides: Sequence[str], out: str | None = None) -> dict[str, list[dict
         from demon_lab.core.execution import set_threads
 
         set_threads(job.threads)
-    chain = build_chain(cfg)  # with model.weights loaded, if given
-    if cfg.model.weights and not cfg.train:  # the given weights as they are (DeMoN's released ones)
+    chain = build_chain(job)  # with model.weights loaded, if given
+    if job.model.weights and not job.train:  # the given weights as they are (DeMoN's released ones)
         from demon_lab.pipeline.weights import read_nets
 
-        refine = "refine_net" in read_nets(cfg.model.weights, mmap=True)
+        refine = "refine_net" in read_nets(job.model.weights, mmap=True)
     else:
-        stages = stage_dirs(cfg)
+        stages = stage_dirs(job)
         if not {s.name for s in stages} >= {"flow1", "dm1", "flow2", "dm2", "iterative"}:
             raise ConfigError("schedule.until: the diagnosis needs the chain up to the iterative stage")
         refine = any(s.name == "refine" and s.done() for s in stages)

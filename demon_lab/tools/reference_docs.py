@@ -179,7 +179,7 @@ the losses' and the precision's own rules, which the typed settings call), by mo
 
 READABLE = {
     "nets/chain.py": (("<p>", "model."),),
-    "pipeline/stages/kinds.py": (("<key>", "schedule.stages.<name>."),),
+    "pipeline/kinds.py": (("<key>", "schedule.stages.<name>."),),
 }
 """Inserted values that a module writes the same way in every message, shown as the user sees them."""
 

@@ -52,8 +52,8 @@ def batch_of(dims: Dims, n: int, device: torch.device) -> dict[str, torch.Tensor
 
 def _stage(kind: str, chain, dims: Dims):
     from demon_lab.core.losses import preset
+    from demon_lab.pipeline.kinds import DepthMotionStage, FlowStage, IterativeStage, RefineStage
     from demon_lab.pipeline.stages.base import StageModule
-    from demon_lab.pipeline.stages.kinds import DepthMotionStage, FlowStage, IterativeStage, RefineStage
 
     w = dict(name=kind, steps=1000, lr=1e-4)
     if kind in ("flow1", "flow2"):

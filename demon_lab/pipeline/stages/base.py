@@ -1,5 +1,5 @@
 """The LightningModule that trains a stage of DeMoN's schedule (`training/v2/training.py`;
-docs/reference.md §5), of whatever kind (:mod:`demon_lab.pipeline.stages.kinds`: the kind gives its
+docs/reference.md §5), of whatever kind (:mod:`demon_lab.pipeline.kinds`: the kind gives its
 loss, the nets it trains and its options). It holds the whole chain as a plain submodule; only the
 stage's own nets train, the upstream nets run frozen in eval mode, forward only.
 
@@ -19,8 +19,8 @@ import torch
 
 from demon_lab.core import execution, losses
 from demon_lab.nets.chain import DeMoN, Prediction, downsample_image
+from demon_lab.pipeline.kinds import StageSpec, pair_priors
 from demon_lab.pipeline.schema import LR_SCHEDULES
-from demon_lab.pipeline.stages.kinds import StageSpec, pair_priors
 from demon_lab.pipeline.stages.memo import FrozenMemo
 
 MULTISTEP_MILESTONES = (0.4, 0.6, 0.8)
@@ -110,7 +110,7 @@ class StageModule(L.LightningModule):
         return pair, downsample_image(batch["image2"]), batch["intrinsics"]
 
     def stage_loss(self, batch: Mapping[str, torch.Tensor], gt: dict) -> tuple[torch.Tensor, dict]:
-        """The kind's loss on ``batch`` and its terms (:meth:`demon_lab.pipeline.stages.kinds.StageSpec.loss`)."""
+        """The kind's loss on ``batch`` and its terms (:meth:`demon_lab.pipeline.kinds.StageSpec.loss`)."""
         return self.spec.loss(self, batch, gt)
 
     def on_save_checkpoint(self, checkpoint: dict) -> None:

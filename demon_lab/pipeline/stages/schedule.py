@@ -10,39 +10,32 @@ chains the keys of the stages before it, so a change upstream retrains everythin
 
 from __future__ import annotations
 
-from omegaconf import DictConfig
-
 from demon_lab.core.execution import prepare_nets
 from demon_lab.nets.chain import DeMoN
 from demon_lab.pipeline.identity import describe_stage, stage_key
-from demon_lab.pipeline.schema import ModelSpec
+from demon_lab.pipeline.settings import JobSettings
 from demon_lab.pipeline.stages.cache import CheckpointError, StageDir
 
 
-def scheduled_stages(cfg: DictConfig) -> list[str]:
-    """The stages a job needs: the schedule's, up to ``schedule.until``."""
-    names = list(cfg.schedule.stages)
-    return names[: names.index(cfg.schedule.until) + 1]
-
-
-def stage_dirs(cfg: DictConfig) -> list[StageDir]:
-    """The cache entries of the scheduled stages (keys chained through the upstream keys)."""
+def stage_dirs(job: JobSettings) -> list[StageDir]:
+    """The cache entries of the stages the job trains (the schedule's, up to ``schedule.until``; keys
+    chained through the upstream keys)."""
     upstream: dict[str, str] = {}
     dirs = []
-    for name in scheduled_stages(cfg):
-        description = describe_stage(cfg, name, upstream)
+    for name in job.schedule.trained():
+        description = describe_stage(job, name, upstream)
         key = stage_key(description)
-        dirs.append(StageDir(cfg.cache_dir, name, key, description))
+        dirs.append(StageDir(job.cache_dir, name, key, description))
         upstream[name] = key
     return dirs
 
 
-def build_chain(cfg: DictConfig) -> DeMoN:
-    """The chain of the config's model options and input size: untrained, or with ``model.weights``
+def build_chain(job: JobSettings) -> DeMoN:
+    """The chain of the job's model options and input size: untrained, or with ``model.weights``
     loaded (:func:`demon_lab.pipeline.weights.load_weights`); its nets in channels-last layout and
     compiled when ``model.channels_last`` / ``model.compile`` ask for it."""
-    model = ModelSpec.of(cfg.model)
-    chain = DeMoN(model.variant, model.width, tuple(cfg.data.size), model.compat, model.correlation, **model.priors(),
+    model = job.model
+    chain = DeMoN(model.variant, model.width, tuple(job.data.size), model.compat, model.correlation, **model.priors(),
                   nets=model.plugins())
     if model.weights:
         from demon_lab.pipeline.weights import load_weights

@@ -18,7 +18,6 @@ from pathlib import Path
 from typing import Any
 
 import lightning as L
-from omegaconf import DictConfig
 
 from demon_lab.core.execution import (
     global_rank,
@@ -27,10 +26,10 @@ from demon_lab.core.execution import (
     resolve_accelerator,
 )
 from demon_lab.nets.chain import DeMoN
+from demon_lab.pipeline.kinds import FlowStage
 from demon_lab.pipeline.settings import JobSettings
 from demon_lab.pipeline.stages.base import StageModule
 from demon_lab.pipeline.stages.cache import StageDir, atomic_checkpoint_io, load_checkpoint
-from demon_lab.pipeline.stages.kinds import FlowStage
 from demon_lab.pipeline.stages.priors import PairPriors, PriorTable, warm_priors
 from demon_lab.pipeline.stages.schedule import build_chain, load_stage, stage_dirs
 
@@ -64,7 +63,7 @@ class TrainingDiverged(FloatingPointError):
     loss term (one line)."""
 
 
-def build_datamodule(cfg: DictConfig, job: JobSettings, batch_size: int, samples: int, skip: int = 0,
+def build_datamodule(job: JobSettings, batch_size: int, samples: int, skip: int = 0,
                      easy_first=None, pin_memory: bool = False, layers_first: float | None = None,
                      fresh_scenes: float = 0.0, priors: PriorTable | None = None):
     """Training data for ``samples`` draws in batches of ``batch_size`` (global: under DDP each
@@ -73,14 +72,14 @@ def build_datamodule(cfg: DictConfig, job: JobSettings, batch_size: int, samples
     of the stage; new synthetic scenes at a steady rate per draw);
     ``pin_memory``: batches in page-locked memory (faster copies to a CUDA device); ``priors``: each
     pair's classical priors, computed once per pair (:mod:`demon_lab.pipeline.stages.priors`). ``job``:
-    ``cfg``'s settings (the caller's, read once)."""
+    the job's settings."""
     from demon_lab.data.datamodule import DemonDataModule, Draws
     from demon_lab.pipeline.config import instantiate
 
     train = [{"weight": e.weight, "dataset": instantiate(e.dataset)} for e in job.data.train]
     world = job.trainer.world
     draws = Draws(batch_size=batch_size // world, samples_per_epoch=samples, seed=job.seed, skip=skip,
-                  rank=global_rank(cfg), world=world, easy_first=None if easy_first is None else tuple(easy_first),
+                  rank=global_rank(job), world=world, easy_first=None if easy_first is None else tuple(easy_first),
                   layers_first=layers_first, layers_size=job.data.size, fresh_scenes=float(fresh_scenes))
     return DemonDataModule(train, draws, num_workers=job.data.num_workers, pin_memory=pin_memory, fields=priors)
 
@@ -92,32 +91,31 @@ def stage_module(job: JobSettings, chain: DeMoN, name: str) -> StageModule:
                        reuse_frozen=job.trainer.reuse_frozen)
 
 
-def train_stage(cfg: DictConfig, chain: DeMoN, stage: StageDir, logger: L.pytorch.loggers.Logger | None,
+def train_stage(job: JobSettings, chain: DeMoN, stage: StageDir, logger: L.pytorch.loggers.Logger | None,
                 progress: bool = True, priors: PriorTable | None = None) -> dict[str, float]:
     """Train one stage into ``stage`` (resuming from its last checkpoint), its pairs carrying their
-    classical ``priors`` where given; returns figures."""
-    job = JobSettings.of(cfg)
+    classical ``priors`` where given; returns figures. ``job``: the job's settings."""
     spec = job.stages[stage.name]
     if spec.steps == 0:  # trains nothing: the nets as they are (from model.weights or an earlier stage)
-        if global_rank(cfg) == 0:
+        if global_rank(job) == 0:
             stage.save({net: plain_state(getattr(chain, net)) for net in spec.trained_nets()})
         log.info("stage %s: 0 steps: keeps %s as they are (from model.weights or an earlier stage)", stage.name,
                  ", ".join(spec.trained_nets()))
-        return _logged(cfg, logger, {"seconds": 0.0, "steps_per_second": 0.0, "resumed_from_step": 0}, 0)
+        return _logged(job, logger, {"seconds": 0.0, "steps_per_second": 0.0, "resumed_from_step": 0}, 0)
     module = stage_module(job, chain, stage.name)
     batch = spec.batch_size or job.data.batch_size
     resume = stage.last_checkpoint if stage.last_checkpoint.is_file() else None
     if resume is None and isinstance(spec, FlowStage) and spec.restarts is not None:
-        resume = screen_restarts(cfg, job, chain, stage, module, logger, priors)
+        resume = screen_restarts(job, chain, stage, module, logger, priors)
     start_step = _checkpoint_step(resume) if resume is not None else 0
     # A resumed stage continues the sample sequence where the checkpoint left it: same batches,
     # same result as an uninterrupted run (on the CPU).
     # With DDP the global batch is the configured one, each process taking its slice of every batch
     # (demon_lab's sampler deals them, not Lightning's, which would reshuffle the sequence).
-    datamodule = build_datamodule(cfg, job, batch, spec.steps * batch, skip=start_step * batch,
+    datamodule = build_datamodule(job, batch, spec.steps * batch, skip=start_step * batch,
                                   **spec.curriculum(), priors=priors,
                                   pin_memory=resolve_accelerator(job.trainer.accelerator) == "cuda")
-    callbacks, keep, clock = _stage_callbacks(cfg, job, spec, stage, logger)
+    callbacks, keep, clock = _stage_callbacks(job, spec, stage, logger)
     profiler = L.pytorch.profilers.SimpleProfiler() if job.trainer.profile else None
     trainer = _trainer(job, spec.steps, logger=logger if logger is not None else False, callbacks=callbacks,
                        enable_progress_bar=progress, profiler=profiler)
@@ -136,7 +134,7 @@ def train_stage(cfg: DictConfig, chain: DeMoN, stage: StageDir, logger: L.pytorc
         log.info("stage %s: keeps its nets of step %d of %d (held-apart %s %.4f; scoring took %.0f s)", stage.name,
                  kept.get("keep_best_step", spec.steps), spec.steps, keep.metric,
                  kept.get(f"keep_best_{keep.metric}", float("nan")), kept["keep_best_seconds"])
-    if global_rank(cfg) == 0:
+    if global_rank(job) == 0:
         stage.save({net: plain_state(getattr(chain, net)) for net in spec.trained_nets()})
     figures = {"seconds": seconds, "steps_per_second": (spec.steps - start_step) / max(seconds, 1e-9),
                "resumed_from_step": start_step, **{f"final/{k}": v for k, v in module.last_terms.items()}, **kept,
@@ -146,10 +144,10 @@ def train_stage(cfg: DictConfig, chain: DeMoN, stage: StageDir, logger: L.pytorc
     # outputs) now rather than let every stage of a job keep its own until the next GC pass.
     del trainer, module, datamodule
     gc.collect()
-    return _logged(cfg, logger, figures, spec.steps)
+    return _logged(job, logger, figures, spec.steps)
 
 
-def _stage_callbacks(cfg: DictConfig, job: JobSettings, spec, stage: StageDir, logger) -> tuple[list, Any, LoopClock]:
+def _stage_callbacks(job: JobSettings, spec, stage: StageDir, logger) -> tuple[list, Any, LoopClock]:
     """A stage's callbacks: its checkpoints, its held-apart scoring (where it logs or keeps its best nets;
     rank 0 only) and ``keep_best`` (None without it), and the clock of its loop."""
     checkpoint = L.pytorch.callbacks.ModelCheckpoint(
@@ -157,7 +155,7 @@ def _stage_callbacks(cfg: DictConfig, job: JobSettings, spec, stage: StageDir, l
         every_n_train_steps=max(1, job.scale.checkpoint_every), auto_insert_metric_name=False)
     callbacks: list = [checkpoint]
     keep = None
-    if (logger is not None or spec.keep_best) and job.data.val and global_rank(cfg) == 0:
+    if (logger is not None or spec.keep_best) and job.data.val and global_rank(job) == 0:
         from demon_lab.pipeline.config import instantiate
         from demon_lab.pipeline.stages.validation import KeepBest, StageValidation
 
@@ -224,9 +222,9 @@ def loop_parts(durations: Mapping[str, Sequence[float]], seconds: float) -> dict
     return figures
 
 
-def _logged(cfg: DictConfig, logger, figures: dict[str, float], step: int) -> dict[str, float]:
+def _logged(job: JobSettings, logger, figures: dict[str, float], step: int) -> dict[str, float]:
     """``figures``, logged on the stage's own run too (``stage/<name>``), whatever becomes of the job."""
-    if logger is not None and global_rank(cfg) == 0:
+    if logger is not None and global_rank(job) == 0:
         logger.log_metrics({f"stage/{k}": v for k, v in figures.items()}, step=step)
     return figures
 
@@ -243,7 +241,7 @@ def _trainer(job: JobSettings, steps: int, **kwargs) -> L.Trainer:
         use_distributed_sampler=False, plugins=[atomic_checkpoint_io()], **kwargs)
 
 
-def screen_restarts(cfg: DictConfig, job: JobSettings, chain: DeMoN, stage: StageDir, module: L.LightningModule,
+def screen_restarts(job: JobSettings, chain: DeMoN, stage: StageDir, module: L.LightningModule,
                     logger: L.pytorch.loggers.Logger | None, priors: PriorTable | None = None) -> Path:
     """The stage option ``restarts: [k, steps]`` (PWC-Net's practice of restarting a flow net stuck at
     a poor start): train ``k`` starts of the stage's net for its first ``steps`` steps, each on the
@@ -270,7 +268,7 @@ def screen_restarts(cfg: DictConfig, job: JobSettings, chain: DeMoN, stage: Stag
             with torch.random.fork_rng(devices=[]):
                 torch.manual_seed(job.seed * 1_000_003 + i)
                 net.apply(initialise)
-        data = build_datamodule(cfg, job, batch, spec.steps * batch, **spec.curriculum(), priors=priors)
+        data = build_datamodule(job, batch, spec.steps * batch, **spec.curriculum(), priors=priors)
         # saved at its last step inside the epoch, as the stage's own checkpoints: the stage resumes from it
         saved = L.pytorch.callbacks.ModelCheckpoint(dirpath=stage.path, filename=f"restart{i}", save_top_k=-1,
                                                     every_n_train_steps=steps, enable_version_counter=False)
@@ -312,7 +310,7 @@ def _quiet_lightning() -> None:
     warnings.filterwarnings("ignore", message=".*dataloader is not resumable.*")
 
 
-def prepare_chain(cfg: DictConfig, on_stage: Callable[[StageDir, str], L.pytorch.loggers.Logger | None]
+def prepare_chain(job: JobSettings, on_stage: Callable[[StageDir, str], L.pytorch.loggers.Logger | None]
                   | None = None, progress: bool = True) -> tuple[DeMoN, list[StageDir], dict[str, dict]]:
     """Build the chain, train the stages the cache lacks and load every stage in order.
 
@@ -320,23 +318,23 @@ def prepare_chain(cfg: DictConfig, on_stage: Callable[[StageDir, str], L.pytorch
     for the stage's training curves. Returns the chain, the stage entries and per-stage figures.
     """
     _quiet_lightning()
-    L.seed_everything(int(cfg.seed), workers=True, verbose=False)
-    chain = build_chain(cfg)
+    L.seed_everything(job.seed, workers=True, verbose=False)
+    chain = build_chain(job)
     figures: dict[str, dict] = {}
-    if cfg.model.weights:
-        log.info("model.weights: %s loaded into the chain%s", cfg.model.weights,
-                 "" if not cfg.train else " (the stages train from it)")
-    if not cfg.train:
-        if not cfg.model.weights:
+    if job.model.weights:
+        log.info("model.weights: %s loaded into the chain%s", job.model.weights,
+                 "" if not job.train else " (the stages train from it)")
+    if not job.train:
+        if not job.model.weights:
             log.info("train=false: evaluating the untrained chain")
         return chain.eval(), [], figures
     table = None
-    if not all(stage.done() for stage in stage_dirs(cfg)):
+    if not all(stage.done() for stage in stage_dirs(job)):
         from demon_lab.data.datasets import keep_in_memory, warm_cache
         from demon_lab.pipeline.config import instantiate
 
         start = time.perf_counter()
-        train = [instantiate(e.dataset) for e in cfg.data.train]
+        train = [instantiate(e.dataset) for e in job.data.train]
         rendered = warm_cache(train)
         if rendered:
             log.info("rendered %d synthetic training scenes into the cache in %.0f s", rendered,
@@ -349,9 +347,9 @@ def prepare_chain(cfg: DictConfig, on_stage: Callable[[StageDir, str], L.pytorch
                 log.info("computed the classical priors of %d training scenes' pairs into the cache in %.0f s",
                          computed, time.perf_counter() - start)
         keep_in_memory(train)  # every stage, and the loader workers it forks, reads the scenes from memory
-    for stage in stage_dirs(cfg):
+    for stage in stage_dirs(job):
         # Under DDP only rank 0 takes the lock (the other ranks join its training collectively).
-        with stage.lock() if global_rank(cfg) == 0 else contextlib.nullcontext():
+        with stage.lock() if global_rank(job) == 0 else contextlib.nullcontext():
             if stage.done():
                 if on_stage:
                     on_stage(stage, "cached")
@@ -359,11 +357,10 @@ def prepare_chain(cfg: DictConfig, on_stage: Callable[[StageDir, str], L.pytorch
                 figures[stage.name] = {"cached": 1.0}
                 continue
             logger = on_stage(stage, "train") if on_stage else None
-            log.info("training stage %s (%s steps) -> %s", stage.name, cfg.schedule.stages[stage.name].steps,
-                     stage.path)
-            figures[stage.name] = train_stage(cfg, chain, stage, logger, progress, table)
+            log.info("training stage %s (%s steps) -> %s", stage.name, job.stages[stage.name].steps, stage.path)
+            figures[stage.name] = train_stage(job, chain, stage, logger, progress, table)
     from demon_lab.data.datasets import MEMORY
 
     MEMORY.clear()  # the training scenes: the evaluation reads other sets
     chain.eval()
-    return chain, stage_dirs(cfg), figures
+    return chain, stage_dirs(job), figures

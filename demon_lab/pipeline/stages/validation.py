@@ -33,7 +33,7 @@ import torch
 
 from demon_lab.core import losses, metrics
 from demon_lab.pipeline.evaluate import run_chain
-from demon_lab.pipeline.stages.kinds import StageSpec
+from demon_lab.pipeline.kinds import StageSpec
 
 
 def _mean(values: list[float]) -> float:
@@ -46,7 +46,7 @@ class StageValidation(L.Callback):
 
     def __init__(self, spec: StageSpec, datasets: Sequence, every_n_steps: int, iterations: int | None = None,
                  batch_size: int = 8):
-        """``spec``: the stage scored (its kind says what: :class:`demon_lab.pipeline.stages.kinds.StageSpec`);
+        """``spec``: the stage scored (its kind says what: :class:`demon_lab.pipeline.kinds.StageSpec`);
         ``iterations``: the passes the chain runs (None: the stage's own, ``spec.validation_passes()``)."""
         self.spec, self.datasets = spec, list(datasets)
         self.iterations = spec.validation_passes() if iterations is None else int(iterations)

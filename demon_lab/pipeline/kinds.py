@@ -26,7 +26,7 @@ import dataclasses
 import functools
 from collections.abc import Mapping
 from dataclasses import dataclass, fields
-from typing import TYPE_CHECKING, Any, ClassVar
+from typing import Any, ClassVar
 
 import torch
 from omegaconf import DictConfig, OmegaConf
@@ -41,9 +41,6 @@ from demon_lab.pipeline.config import (
     expect_int,
     expect_positive,
 )
-
-if TYPE_CHECKING:
-    from demon_lab.pipeline.stages.base import StageModule
 
 PRIOR_FIELDS = ("prior_flow", "prior_motion")
 """The classical priors a training batch may carry, in :meth:`demon_lab.nets.chain.DeMoN.bootstrap`'s
@@ -110,10 +107,11 @@ class StageSpec:
         that the stage's options set."""
         return {"easy_first": self.easy_first, "fresh_scenes": self.fresh_scenes}
 
-    def loss(self, stage: StageModule, batch: Mapping[str, torch.Tensor],
+    def loss(self, stage: Any, batch: Mapping[str, torch.Tensor],
              gt: dict) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
         """The stage's loss on a training ``batch`` and its terms by name: ``stage`` is the
-        LightningModule that trains it (its chain, its frozen computations, its step and ramps)."""
+        LightningModule that trains it (:class:`demon_lab.pipeline.stages.base.StageModule`: its
+        chain, its frozen computations, its step and ramps)."""
         raise NotImplementedError
 
     def save_state(self, state: dict, checkpoint: dict) -> None:
