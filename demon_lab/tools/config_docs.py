@@ -254,7 +254,7 @@ def page() -> str:
         "## Stage options (`schedule.stages.NAME`)",
         "",
         "Each stage of `schedule.stages` is a mapping told apart by its `kind`; its options, types and defaults "
-        "are its kind's class (`demon_lab/pipeline/kinds.py`). `conf/schedule/released.yaml` sets DeMoN's six "
+        "are its kind's class (`demon_lab/pipeline/kinds/`). `conf/schedule/released.yaml` sets DeMoN's six "
         "stages; an option it leaves out takes the default here, and one its kind does not take is refused.",
         "",
         *stages_table(),

@@ -179,7 +179,8 @@ the losses' and the precision's own rules, which the typed settings call), by mo
 
 READABLE = {
     "nets/chain.py": (("<p>", "model."),),
-    "pipeline/kinds.py": (("<key>", "schedule.stages.<name>."),),
+    **{f"pipeline/kinds/{m}.py": (("<key>", "schedule.stages.<name>."),)
+       for m in ("__init__", "base", "flow", "depth_motion", "iterative", "refine")},
 }
 """Inserted values that a module writes the same way in every message, shown as the user sees them."""
 
