@@ -8,8 +8,10 @@ from omegaconf import OmegaConf
 
 from demon_lab import resources
 from demon_lab.pipeline import config, identity
+from demon_lab.pipeline.settings import JobSettings
 from demon_lab.pipeline.stages.schedule import stage_dirs
-from tests.jobs import settings
+
+settings = JobSettings.of  # (this module also runs from an installed package, where tests.jobs is not importable)
 
 
 def _compose(*overrides: str, hydra: bool = False):

@@ -99,7 +99,7 @@ def test_a_sweep_with_one_bad_job_launches_none_and_says_which_in_one_line(tmp_p
         assert capsys.readouterr().err.strip() == "error: iterations: expected an integer >= 0, got -2"
         assert not (tmp_path / "mlflow.db").exists() and not (tmp_path / "sweep").exists()
         callback.on_multirun_start(_multirun_config(tmp_path, "seed=0,1", "iterations=0"))
-    assert callback.parent is not None and callback.sweep is not None
+    assert callback.parent is not None and callback.records.parent == (tmp_path / 'sweep' / '.records').resolve()
 
 
 def test_site_settings_on_the_search_path_reach_the_slurm_launchers(tmp_path):
@@ -121,3 +121,21 @@ def test_output_folders_name_the_overrides_not_the_tracking_or_cache(tmp_path):
     excluded = set(cfg.hydra.job.config.override_dirname.exclude_keys)
     assert {"tracking.uri", "cache_dir", "force"} <= excluded and "seed" not in excluded
     assert cfg.hydra.job.override_dirname == "seed=1"
+
+
+def test_any_error_of_the_check_stops_the_sweep_in_one_line(tmp_path, monkeypatch, capsys):
+    """Hydra turns an exception of a callback into a warning, so the check says every error itself:
+    one that is not a config error (a weights file that cannot be read) is one line and exit status 2
+    too, not a sweep launched unchecked."""
+    from demon_lab.app.callbacks import MultirunTracking
+    from demon_lab.pipeline import validate
+
+    def unreadable(cfg, here=True):
+        raise PermissionError("[Errno 13] Permission denied: 'weights.pt'")
+
+    monkeypatch.setattr(validate, "validate", unreadable)
+    with initialize_config_dir(CONF, version_base="1.3"), pytest.raises(SystemExit) as exited:
+        MultirunTracking().on_multirun_start(_multirun_config(tmp_path, "seed=0,1"))
+    assert exited.value.code == 2
+    assert capsys.readouterr().err.strip() == "error: PermissionError: [Errno 13] Permission denied: 'weights.pt'"
+    assert not (tmp_path / "mlflow.db").exists()

@@ -281,52 +281,58 @@ def test_sweep_verdict_does_not_count_failed_attempts_of_jobs_that_finished_sinc
 
 
 def test_the_sweep_verdict_reads_its_own_jobs_records_not_an_earlier_sweeps(tmp_path, monkeypatch, capsys):
-    """Each job leaves its outcome in its folder (``on_job_end``, in the job's process, whatever the
-    launcher); the sweep's end reads its own jobs' records: an error.txt or a FAILED record that an
-    earlier sweep left in the folder is not a failure of this one, a job that returned FAILED is,
-    listed by its folder; the table of its jobs is in launch order; the parent run ends FAILED and the
-    sweep exits 1."""
+    """Each job leaves its outcome in its sweep's own folder of records (``on_job_end``, in the job's
+    process, whatever the launcher), one file per job, even where two jobs share an output folder; the
+    sweep's end reads its own: an error.txt or a FAILED record that an earlier sweep left is not a
+    failure of this one, a job that returned FAILED is, listed by its folder, and so is a job Hydra
+    ended FAILED; the table of its jobs is in launch order; the parent run ends FAILED and the sweep
+    exits 1."""
     from hydra.core.utils import JobReturn, JobStatus
     from omegaconf import OmegaConf
 
     from demon_lab.app.callbacks import MultirunTracking
-    from demon_lab.app.sweep import RECORD
+    from demon_lab.app.sweep import records_dir
     from demon_lab.pipeline.tracking import TAG, Tracker
 
     monkeypatch.chdir(tmp_path)
     sweep = tmp_path / "multirun" / "default"
-    tracker = Tracker(f"sqlite:///{tmp_path}/mlflow.db", "default", str(tmp_path / "artifacts"))
 
-    def returned(num: int, status: str | None) -> JobReturn:
-        name = f"seed={num}"
-        hydra_cfg = OmegaConf.create({"hydra": {"runtime": {"output_dir": str(sweep / name)}, "job": {"num": num}}})
-        job = JobReturn(overrides=[name], hydra_cfg=hydra_cfg, status=JobStatus.COMPLETED,
-                        cfg=OmegaConf.create({"method": "demon", "iterations": 0}))
+    def returned(num: int, status: str | None, folder: str = "", hydra_status=JobStatus.COMPLETED) -> JobReturn:
+        output = sweep / (folder or f"seed={num}")
+        hydra_cfg = OmegaConf.create({"hydra": {"runtime": {"output_dir": str(output)}, "job": {"num": num}}})
+        job = JobReturn(overrides=[f"seed={num}"], hydra_cfg=hydra_cfg, status=hydra_status,
+                        cfg=OmegaConf.create({"method": "demon", "iterations": 0,
+                                              "trainer": {"devices": 1, "num_nodes": 1}}))
         job._return_value = {"status": status, "run_id": None}
         return job
 
     earlier = MultirunTracking()  # an earlier sweep in the same folder: its seed=2 failed
-    earlier.sweep = "earlier"
+    earlier.records = records_dir("multirun/default", "earlier")
     earlier.on_job_end(None, returned(2, "FAILED"))
+    (sweep / "seed=2").mkdir(parents=True, exist_ok=True)
     (sweep / "seed=2" / "error.txt").write_text("Traceback (an earlier sweep's)\n")
+    tracker = Tracker(f"sqlite:///{tmp_path}/mlflow.db", "default", str(tmp_path / "artifacts"))
     callback = MultirunTracking()
     callback.tracker, callback.parent = tracker, tracker.start("sweep", {f"{TAG}kind": "sweep"})
-    callback.sweep = "this"
-    for num, status in ((2, None), (0, None), (1, "FAILED")):  # (a parallel launcher ends them in any order)
-        callback.on_job_end(None, returned(num, status))
-    assert all((sweep / f"seed={n}" / RECORD).is_file() for n in range(3))
+    callback.records = records_dir("multirun/default", "this")
+    # (a parallel launcher ends them in any order; jobs 3 and 4 share a folder, as a sweep over threads does)
+    for job in (returned(2, None), returned(0, None), returned(1, "FAILED"), returned(4, None, "threads"),
+                returned(3, None, "threads", hydra_status=JobStatus.FAILED)):
+        callback.on_job_end(None, job)
     config = OmegaConf.create({"experiment": "no_study", "hydra": {"sweep": {"dir": "multirun/default"}}})
     with pytest.raises(SystemExit) as exited:
         callback.on_multirun_end(config)
     assert exited.value.code == 1
     captured = capsys.readouterr()
     assert captured.err.strip().splitlines() == [
-        "error: 1 job(s) of the sweep failed (each folder has error.txt): multirun/default/seed=1"]
+        "error: 2 job(s) of the sweep failed (each folder has error.txt): multirun/default/seed=1; "
+        "multirun/default/threads"]
     table = captured.out.split("the sweep's jobs on ")[1].splitlines()
     assert table[1].split()[:2] == ["seed", "status"]
-    assert [line.split()[:2] for line in table[3:6]] == [["0", "-"], ["1", "FAILED"], ["2", "-"]]
+    assert [line.split()[:2] for line in table[3:8]] == [["0", "-"], ["1", "FAILED"], ["2", "-"], ["3", "FAILED"],
+                                                         ["4", "-"]]
     parent = tracker.client.get_run(callback.parent)
-    assert parent.info.status == "FAILED" and parent.data.tags[f"{TAG}jobs_failed_now"] == "1"
+    assert parent.info.status == "FAILED" and parent.data.tags[f"{TAG}jobs_failed_now"] == "2"
 
 
 def _commit_of_the_job_command() -> str | None:

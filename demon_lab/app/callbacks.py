@@ -40,7 +40,7 @@ class MultirunTracking(Callback):
     def __init__(self) -> None:
         self.tracker = None
         self.parent: str | None = None
-        self.sweep: str | None = None  # this sweep's id, which its jobs' records carry
+        self.records: Path | None = None  # where this sweep's jobs leave their outcomes (app.sweep.records_dir)
         self.jobs: list[dict[str, Any]] = []  # this sweep's jobs: overrides, status, run id, pass (from their records)
         self.server = None
         self.served: str | None = None  # the address of self.server, which travels with the jobs
@@ -58,10 +58,10 @@ class MultirunTracking(Callback):
 
         from hydra.core.global_hydra import GlobalHydra
 
-        from demon_lab.app.sweep import check_sweep
+        from demon_lab.app.sweep import check_sweep, records_dir
         from demon_lab.pipeline.settings import TrackingSettings
 
-        self.parent, self.sweep = None, uuid.uuid4().hex
+        self.parent, self.records = None, records_dir(config.hydra.sweep.dir, uuid.uuid4().hex)
         error = check_sweep(config, GlobalHydra.instance().config_loader())
         if error:
             print(f"error: {error}", file=sys.stderr, flush=True)
@@ -88,14 +88,19 @@ class MultirunTracking(Callback):
 
         key = sweep_key(config.experiment, config.hydra.overrides.task)
         overrides = " ".join(config.hydra.overrides.task)
-        self.parent = self.tracker.find_sweep(key)
-        if self.parent is not None:
-            self.tracker.reopen(self.parent)
-            log.info("continuing the sweep run %s: finished jobs are skipped", self.parent)
-        else:
-            self.parent = self.tracker.start(f"sweep {config.experiment}: {overrides}"[:250],
-                                             {f"{TAG}kind": "sweep", f"{TAG}sweep": overrides,
-                                              f"{TAG}sweep_key": key, f"{TAG}experiment": config.experiment})
+        try:  # (Hydra turns a callback's exception into a warning: the sweep would go on without its run)
+            self.parent = self.tracker.find_sweep(key)
+            if self.parent is not None:
+                self.tracker.reopen(self.parent)
+                log.info("continuing the sweep run %s: finished jobs are skipped", self.parent)
+            else:
+                self.parent = self.tracker.start(f"sweep {config.experiment}: {overrides}"[:250],
+                                                 {f"{TAG}kind": "sweep", f"{TAG}sweep": overrides,
+                                                  f"{TAG}sweep_key": key, f"{TAG}experiment": config.experiment})
+        except Exception as e:
+            print(f"error: the sweep's run in {config.tracking.uri}: {str(e).strip().splitlines()[0]}",
+                  file=sys.stderr, flush=True)
+            sys.exit(2)
 
     def on_job_start(self, config: DictConfig, **kwargs: Any) -> None:
         """In the job's process, just before the task: the sweep's parent run and the address of the
@@ -113,8 +118,8 @@ class MultirunTracking(Callback):
 
         PARENT_RUN.set(None)
         SWEEP_SERVER.set(None)
-        if self.sweep is not None and job_return.hydra_cfg is not None:
-            write_record(job_return, self.sweep)
+        if self.records is not None and job_return.hydra_cfg is not None:
+            write_record(job_return, self.records)
 
     def on_multirun_end(self, config: DictConfig, **kwargs: Any) -> None:
         """In the sweep's process, after its last job: its jobs' records read, the study's report on the
@@ -123,9 +128,9 @@ class MultirunTracking(Callback):
         from demon_lab.app.sweep import read_records
         from demon_lab.pipeline.tracking import TAG
 
-        records = read_records(config.hydra.sweep.dir, self.sweep) if self.sweep is not None else []
+        records = read_records(self.records) if self.records is not None else []
         self.jobs = [{k: r[k] for k in ("overrides", "run_id", "status", "pass")} for r in records]
-        failed = sorted(_shown(r["folder"]) for r in records if r["status"] == "FAILED")
+        failed = sorted(_shown(Path(r["folder"])) for r in records if r["status"] == "FAILED")
         if self.tracker is not None and self.parent is not None:
             children = self.tracker.children(self.parent)
             counts = {s: sum(1 for r in children if r.info.status == s) for s in ("FINISHED", "FAILED", "RUNNING")}

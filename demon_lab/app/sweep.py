@@ -13,17 +13,19 @@ batch, with any launcher. demon_lab adds three things, in a Hydra callback
 - **a failed job does not stop the sweep.** The basic sweeper stops at the first job that raises,
   so in a sweep a job never does: it ends its run FAILED, prints one line, leaves ``error.txt`` in
   its folder and returns (:func:`demon_lab.app.job.main_task`).
-- **the sweep's verdict.** Each job leaves a record of its outcome in its folder (:data:`RECORD`,
-  written by the callback's ``on_job_end`` in the job's own process, which with the joblib and SLURM
-  launchers is another one, so a file is what reaches the sweep), marked with its sweep's id; the
-  sweep's end reads the records of its own jobs (:func:`read_records`), prints their table, lists the
-  failed ones and exits non-zero if any failed.
+- **the sweep's verdict.** Each job leaves a record of its outcome (:func:`write_record`, called by
+  the callback's ``on_job_end`` in the job's own process, which with the joblib and SLURM launchers is
+  another one, so a file is what reaches the sweep) in its sweep's own folder of records
+  (:func:`records_dir`: under the sweep's folder, named by the sweep's id, one file per job number);
+  the sweep's end reads them (:func:`read_records`), prints their table, lists the failed jobs and
+  exits non-zero if any failed.
 """
 
 from __future__ import annotations
 
 import itertools
 import json
+import os
 from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Any
@@ -33,8 +35,8 @@ from hydra.errors import HydraException
 from omegaconf import DictConfig, OmegaConf, open_dict, read_write
 from omegaconf.errors import OmegaConfBaseException
 
-RECORD = "job.json"
-"""The file in a sweep job's folder that holds its outcome (:func:`write_record`)."""
+RECORDS = ".records"
+"""The folder under a sweep's folder that holds its jobs' outcomes, one folder per sweep id."""
 REMOTE_LAUNCHERS = ("slurm", "slurm_ddp")
 """Launchers whose jobs run on other machines: their device-dependent checks run in the job."""
 
@@ -97,38 +99,58 @@ def check_sweep(primary: DictConfig, config_loader: Any) -> str | None:
         return str(e)
     except (HydraException, OmegaConfBaseException) as e:
         return one_line(e)
+    except Exception as e:  # (a weights file that cannot be read, a cached stage that cannot be listed)
+        from demon_lab.app.job import known_errors
+
+        line = str(e).strip().splitlines()[0] if str(e).strip() else ""
+        return line if isinstance(e, known_errors()) else f"{type(e).__name__}: {line}"
     return None
 
 
-def write_record(job_return: Any, sweep: str) -> None:
-    """A sweep job's outcome in its folder (:data:`RECORD`): its sweep's id, its place in the sweep,
-    its overrides, its status and run id (the task's return, :func:`demon_lab.app.job.main_task`) and
-    the pass its row shows (``baseline`` for a method scored without passes)."""
+def records_dir(sweep_dir: str | Path, sweep: str) -> Path:
+    """Where the jobs of sweep ``sweep`` (its id) leave their outcomes: under the sweep's folder
+    (``hydra.sweep.dir`` of its primary config, made absolute), a folder of its own. The jobs' own
+    folders may be shared (a sweep over a key its folder names leave out, such as ``threads``) or lie
+    elsewhere (a sweep over ``experiment``), so the records do not go there."""
+    return Path(sweep_dir).resolve() / RECORDS / sweep
+
+
+def write_record(job_return: Any, directory: Path) -> None:
+    """A sweep job's outcome as ``directory/job-NUM.json`` (:func:`records_dir`): its place in the
+    sweep, its folder, its overrides, its status and run id (the task's return,
+    :func:`demon_lab.app.job.main_task`; ``FAILED`` where Hydra ended it so) and the pass its row shows
+    (``baseline`` for a method scored without passes). Written whole (a file renamed into place), and
+    by the job's first process alone where it trains on several (DDP: the others only train)."""
+    from hydra.core.utils import JobStatus
+
+    from demon_lab.core.execution import global_rank, world_size
     from demon_lab.pipeline.methods import method
 
-    returned = job_return._return_value if isinstance(job_return._return_value, dict) else {}
     cfg = job_return.cfg
+    if cfg is not None and world_size(cfg) > 1 and global_rank(cfg) != 0:
+        return
+    returned = job_return._return_value if isinstance(job_return._return_value, dict) else {}
+    failed = job_return.status == JobStatus.FAILED
     chain = cfg is None or method(cfg.method).scores_passes  # (a classical method's summary has no passes)
     hydra = job_return.hydra_cfg.hydra
-    record = {"sweep": sweep, "num": int(hydra.job.num), "overrides": list(job_return.overrides or []),
-              "status": returned.get("status") or "-", "run_id": returned.get("run_id"),
+    num = int(hydra.job.num)
+    record = {"num": num, "folder": str(hydra.runtime.output_dir), "overrides": list(job_return.overrides or []),
+              "status": "FAILED" if failed else returned.get("status") or "-", "run_id": returned.get("run_id"),
               "pass": ("-" if cfg is None else cfg.iterations) if chain else "baseline"}
-    folder = Path(hydra.runtime.output_dir)
-    folder.mkdir(parents=True, exist_ok=True)
-    (folder / RECORD).write_text(json.dumps(record, indent=2) + "\n")
+    directory.mkdir(parents=True, exist_ok=True)
+    part = directory / f".job-{num}.json.{os.getpid()}"
+    part.write_text(json.dumps(record, indent=2) + "\n")
+    os.replace(part, directory / f"job-{num}.json")
 
 
-def read_records(sweep_dir: str | Path, sweep: str) -> list[dict[str, Any]]:
-    """The records of sweep ``sweep``'s jobs under its folder, in launch order, each with its
-    ``folder``; a record of another sweep (an earlier one in the same folder) is not among them."""
+def read_records(directory: Path) -> list[dict[str, Any]]:
+    """The records in ``directory`` (:func:`write_record`), in launch order."""
     found = []
-    for path in Path(sweep_dir).rglob(RECORD):
+    for path in directory.glob("job-*.json"):
         try:
-            record = json.loads(path.read_text())
-        except (OSError, ValueError):
+            found.append(json.loads(path.read_text()))
+        except (OSError, ValueError):  # (a record cannot be torn: it is renamed into place whole)
             continue
-        if record.get("sweep") == sweep:
-            found.append({**record, "folder": path.parent})
     return sorted(found, key=lambda r: r["num"])
 
 
