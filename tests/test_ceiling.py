@@ -1,0 +1,67 @@
+"""The ceiling table's measures: how precise a flow is, and the motion each reader reads from it."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from demon_lab.baselines import ceiling
+from demon_lab.baselines.twoview import BaselineFailure, pixel_intrinsics
+
+
+def _pair(seed: int = 3, size=(96, 128)):
+    from demon_lab.data import synthetic
+
+    sample = synthetic.render_pair("synthetic_sun3d", seed, size, supersample=1)
+    return {k: v.numpy() if hasattr(v, "numpy") else v for k, v in sample.items()}
+
+
+def test_precision_counts_the_vectors_within_each_distance_of_the_truth_among_those_with_a_truth():
+    truth = np.zeros((1, 5, 2))
+    flow = truth + np.array([[0.5, 0], [1.5, 0], [0, 3.0], [4.5, 0], [0, 0]])[None]
+    truth[0, 4] = np.nan  # no truth there: not counted
+    assert ceiling.precision(flow, truth) == {"within_1px": 0.25, "within_2px": 0.5, "within_4px": 0.75}
+    flow[0, 0] = np.nan  # a vector the flow does not give is not within any distance
+    assert ceiling.precision(flow, truth)["within_1px"] == 0.0
+
+
+def test_every_reader_reads_the_true_motion_from_the_true_flow():
+    """On a rendered pair's ground-truth flow every vector is exact, so each reader's motion is the
+    pair's (within 0.1 degrees), and every vector is within 1 pixel."""
+    sample = _pair()
+    out = ceiling.ceiling(sample["flow"], sample["flow"], sample)
+    assert {out[f"within_{n}px"] for n in ceiling.PIXELS} == {1.0}
+    for reader in ceiling.READERS:
+        assert out[f"{reader}_failed"] == 0.0, reader
+        assert out[f"{reader}_rot_deg"] < 0.1 and out[f"{reader}_tran_deg"] < 0.1, (reader, out)
+
+
+def test_the_oracles_pick_keeps_the_precise_vectors_and_a_reader_without_enough_fails():
+    """A flow whose vectors are off by 5 pixels but for a tenth that are exact: the oracle's pick reads
+    the motion from those (as from the truth), and where no vector is within a pixel it fails: NaN
+    errors and its failure counted, the other readers unaffected."""
+    sample = _pair()
+    truth = ceiling.pixel_flow(sample["flow"], sample)
+    h, w = truth.shape[:2]
+    rng = np.random.default_rng(0)
+    angle = rng.uniform(0, 2 * np.pi, (h, w))
+    off = truth + 5.0 * np.stack([np.cos(angle), np.sin(angle)], -1)
+    exact = rng.random((h, w)) < 0.1
+    mixed = np.where(exact[..., None], truth, off)
+    K = pixel_intrinsics(sample["intrinsics"], h, w)
+    motion = ceiling.read_motion(mixed, K, "pick1", truth)
+    from demon_lab.core.metrics import motion_errors
+
+    errors = motion_errors(motion, sample["motion"])
+    assert errors["rot_deg"] < 0.1 and errors["tran_deg"] < 0.1
+    with pytest.raises(BaselineFailure, match="vectors to read the motion from"):
+        ceiling.read_motion(off, K, "pick1", truth)
+    scale = np.array([w, h], dtype=np.float64)
+    normalised = np.moveaxis(off / scale, -1, 0)
+    out = ceiling.ceiling(normalised, sample["flow"], sample)
+    assert out["pick1_failed"] == 1.0 and math.isnan(out["pick1_rot_deg"]) and out["within_4px"] == 0.0
+    assert out["lmeds_failed"] == 0.0 and math.isfinite(out["lmeds_tran_deg"])
+    with pytest.raises(ValueError, match="reader: expected one of"):
+        ceiling.read_motion(off, K, "eight_point", truth)
