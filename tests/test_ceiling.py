@@ -65,3 +65,26 @@ def test_the_oracles_pick_keeps_the_precise_vectors_and_a_reader_without_enough_
     assert out["lmeds_failed"] == 0.0 and math.isfinite(out["lmeds_tran_deg"])
     with pytest.raises(ValueError, match="reader: expected one of"):
         ceiling.read_motion(off, K, "eight_point", truth)
+
+
+def test_a_job_with_eval_ceiling_scores_the_bootstrap_flow_of_each_test_set_and_its_key_only_then(tmp_path):
+    """``eval.ceiling=true`` adds the ceiling's means to each test set's summary (``ceiling/...``: the
+    precise vectors' shares, in order, and each reader's errors and failures); off (the default) it
+    adds nothing and is in no key."""
+    from demon_lab.pipeline.evaluate import evaluate_test_sets
+    from demon_lab.pipeline.identity import run_key
+    from demon_lab.pipeline.stages.schedule import build_chain
+    from tests.jobs import compose_config, settings, smoke_overrides
+
+    base = smoke_overrides(tmp_path, "train=false", "iterations=0", "eval.max_samples=2")
+    job = settings(compose_config([*base, "eval.ceiling=true"]))
+    chain = build_chain(job).eval()
+    results = evaluate_test_sets(job, chain, refined=False)
+    for r in results:
+        s = r.summary
+        assert 0 <= s["ceiling/within_1px"] <= s["ceiling/within_2px"] <= s["ceiling/within_4px"] <= 1, r.name
+        for reader in ceiling.READERS:
+            assert 0 <= s[f"ceiling/{reader}_failed"] <= 2 and f"ceiling/{reader}_tran_deg" in s, (r.name, reader)
+    plain = settings(compose_config(base))
+    assert not any(k.startswith("ceiling/") for k in evaluate_test_sets(plain, chain, refined=False)[0].summary)
+    assert run_key(plain) == run_key(settings(compose_config([*base, "eval.ceiling=false"]))) != run_key(job)

@@ -149,11 +149,51 @@ def evaluate_test_sets(job: JobSettings, chain: DeMoN | None, refined: bool) -> 
                                           job.eval.max_samples, keep=keep, refined=refined, histogram=histogram,
                                           precision=job.precision, channels_last=job.model.channels_last)
             summary = summarize(rows, job.iterations)
+            if job.eval.ceiling:
+                summary.update(flow_ceiling(chain, dataset, job))
         else:
             rows, kept = _evaluate_baseline(job, entry, dataset, chain, keep, histogram)
             summary = summarize_baseline(rows)
         results.append(TestSetResult(dataset.name, rows, summary, histogram.to_dict(), kept))
     return results
+
+
+def flow_ceiling(chain: DeMoN, dataset, job: JobSettings) -> dict[str, float]:
+    """``eval.ceiling``: how much camera motion the bootstrap pass's flow (flow1's, at level 2; the
+    ground truth's under ``oracle=flow``) carries on ``dataset``, and how much each reader of it loses
+    (:func:`demon_lab.baselines.ceiling.ceiling`, against the ground-truth flow at the flow's grid):
+    means over the pairs with a known motion (``ceiling/within_1px``, ``ceiling/ransac_tran_deg``, ...;
+    ``ceiling/READER_failed``: the pairs a reader read no motion from)."""
+    import numpy as np
+
+    from demon_lab.baselines.ceiling import ceiling
+
+    n = len(dataset) if job.eval.max_samples is None else min(len(dataset), int(job.eval.max_samples))
+    loader = DataLoader(torch.utils.data.Subset(dataset, range(n)), batch_size=job.eval.batch_size, shuffle=False)
+    rows = []
+    for batch, _, out in run_chain(chain, loader, 0, job.oracle, job.precision, job.model.channels_last,
+                                   refine=False):
+        for i in range(batch["image1"].shape[0]):
+            sample = {k: v[i] for k, v in batch.items() if isinstance(v, torch.Tensor)}
+            truth = metrics.ground_truth(sample, dataset)
+            motion = np.asarray(truth["motion"], dtype=np.float64)
+            if not np.isfinite(motion).all():  # (a source without camera poses)
+                continue
+            flow = out.passes[0].flow[i].double().cpu().numpy()
+            gt_flow = metrics.resize_nearest(np.asarray(truth["flow"], dtype=np.float64), flow.shape[1:])
+            cameras = {k: sample[k].double().numpy() for k in ("intrinsics", "intrinsics2") if k in sample}
+            rows.append(ceiling(flow, gt_flow, {**cameras, "motion": motion}, seed=job.baseline.seed))
+    if not rows:
+        return {}
+    out = {}
+    for key in rows[0]:
+        values = np.array([r[key] for r in rows], dtype=np.float64)
+        if key.endswith("_failed"):
+            out[f"ceiling/{key}"] = float(values.sum())
+        else:
+            finite = values[np.isfinite(values)]
+            out[f"ceiling/{key}"] = float(finite.mean()) if finite.size else float("nan")
+    return out
 
 
 def _evaluate_baseline(job: JobSettings, entry, dataset, chain: DeMoN | None, keep: int,

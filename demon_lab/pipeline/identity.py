@@ -49,7 +49,7 @@ EXECUTION_KEYS = ("channels_last", "compile")
 NEUTRAL: dict[str, Any] = {
     "model.compat": None, "model.weights": None, "model.correlation": None,
     "model.flow1_prior": None, "model.dm1_prior": None, "model.flow2_prior": None, "model.dm2_prior": None,
-    "precision": "32-true",
+    "precision": "32-true", "eval.ceiling": False,
     "model.nets": {"flow1": None, "dm1": None, "flow2": None, "dm2": None, "refine": None},
     **{f"model.nets.{slot}": None for slot in ("flow1", "dm1", "flow2", "dm2", "refine")},
 }

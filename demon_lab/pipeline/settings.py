@@ -268,6 +268,8 @@ class EvalSettings(Section):
     max_samples: int | None = setting(Int(1, optional=True))
     visualize: int = setting(Int(0))
     point_clouds: int = setting(Int(0))
+    ceiling: bool = setting(Flag(), default=False)
+    """(:func:`demon_lab.pipeline.evaluate.flow_ceiling`)"""
 
 
 @dataclass(frozen=True)
