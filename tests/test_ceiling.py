@@ -88,3 +88,38 @@ def test_a_job_with_eval_ceiling_scores_the_bootstrap_flow_of_each_test_set_and_
     plain = settings(compose_config(base))
     assert not any(k.startswith("ceiling/") for k in evaluate_test_sets(plain, chain, refined=False)[0].summary)
     assert run_key(plain) == run_key(settings(compose_config([*base, "eval.ceiling=false"]))) != run_key(job)
+
+
+def test_a_reader_whose_solver_aborts_draws_again_and_fails_in_one_line_if_it_keeps_aborting(monkeypatch):
+    """OpenCV's 5-point solver aborts on some degenerate minimal samples (an assertion in ``solvePoly``):
+    the least-median fit, as the RANSAC one, is run again on the vectors in another order, and where
+    every run aborts the reader fails (a counted failure, not a failed job)."""
+    import cv2
+
+    from demon_lab.baselines import twoview
+
+    sample = _pair()
+    truth = ceiling.pixel_flow(sample["flow"], sample)
+    K = pixel_intrinsics(sample["intrinsics"], *truth.shape[:2])
+    real, calls = cv2.findEssentialMat, []
+
+    def aborting(*args, **kwargs):
+        calls.append(kwargs["method"])
+        if len(calls) == 1:
+            raise cv2.error("solvePoly: (-215:Assertion failed)")
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(twoview.cv2, "findEssentialMat", aborting)
+    from demon_lab.core.metrics import motion_errors
+
+    errors = motion_errors(ceiling.read_motion(truth, K, "lmeds"), sample["motion"])
+    assert calls == [cv2.LMEDS, cv2.LMEDS] and errors["tran_deg"] < 0.1
+
+    def always(*args, **kwargs):
+        raise cv2.error("solvePoly: (-215:Assertion failed)")
+
+    monkeypatch.setattr(twoview.cv2, "findEssentialMat", always)
+    with pytest.raises(BaselineFailure, match="least median of squares aborted 3 times"):
+        ceiling.read_motion(truth, K, "lmeds")
+    out = ceiling.ceiling(sample["flow"], sample["flow"], sample)
+    assert out["lmeds_failed"] == 1.0 and out["ransac_failed"] == 1.0

@@ -87,13 +87,9 @@ def read_motion(flow_px: np.ndarray, K: np.ndarray, reader: str, truth_px: np.nd
         raise BaselineFailure(f"{int(use.sum())} vectors to read the motion from (needs {MIN_VECTORS})")
     x1 = grid[use]
     x2 = x1 + flow_px[use]
-    if reader == "ransac":
-        E, inliers = ransac_essential(x1, x2, K, threshold, MIN_VECTORS, seed)
-        return pose_from_essential(E, x1, x2, K, inliers)
-    E, mask = cv2.findEssentialMat(x1, x2, K, method=cv2.LMEDS, prob=0.999)
-    if E is None or E.shape != (3, 3):
-        raise BaselineFailure("least median of squares found no (unique) essential matrix")
-    return pose_from_essential(E, x1, x2, K, None if mask is None else mask[:, 0].astype(bool))
+    method = cv2.RANSAC if reader == "ransac" else cv2.LMEDS  # (each retried where OpenCV's solver aborts)
+    E, inliers = ransac_essential(x1, x2, K, threshold, MIN_VECTORS, seed, method=method)
+    return pose_from_essential(E, x1, x2, K, inliers)
 
 
 def ceiling(flow: np.ndarray, truth: np.ndarray, sample: Mapping[str, Any], seed: int = 0,

@@ -185,9 +185,10 @@ def ransac_fundamental(x1: np.ndarray, x2: np.ndarray, threshold: float, iterati
 
 
 def ransac_essential(x1: np.ndarray, x2: np.ndarray, K: np.ndarray, threshold: float, min_inliers: int = 8,
-                     seed: int = 0, attempts: int = 3) -> tuple[np.ndarray, np.ndarray]:
+                     seed: int = 0, attempts: int = 3, method: int = cv2.RANSAC) -> tuple[np.ndarray, np.ndarray]:
     """Nister's 5-point algorithm in RANSAC (OpenCV's ``findEssentialMat``, confidence 0.999):
     E and the inlier mask for pixel points of one camera ``K``, ``threshold`` in pixels.
+    ``method=cv2.LMEDS``: in least median of squares instead (``threshold`` unused).
 
     OpenCV draws its samples from a fixed generator. Its solver aborts the whole run on some
     degenerate minimal samples (an assertion in OpenCV 5's ``solvePoly``); the run is then repeated
@@ -196,6 +197,7 @@ def ransac_essential(x1: np.ndarray, x2: np.ndarray, K: np.ndarray, threshold: f
     ``min_inliers`` inliers, or when every run aborts.
     """
     n = len(x1)
+    what = "RANSAC" if method == cv2.RANSAC else "least median of squares"
     if n < 5:
         raise BaselineFailure(f"only {n} correspondences (the 5-point algorithm needs 5)")
     rng = np.random.default_rng(seed)
@@ -203,19 +205,19 @@ def ransac_essential(x1: np.ndarray, x2: np.ndarray, K: np.ndarray, threshold: f
     for attempt in range(attempts):
         try:
             E, mask = cv2.findEssentialMat(x1[order].astype(np.float64), x2[order].astype(np.float64), K,
-                                           method=cv2.RANSAC, prob=0.999, threshold=float(threshold))
+                                           method=method, prob=0.999, threshold=float(threshold))
             break
         except cv2.error as e:
             if attempt == attempts - 1:
-                raise BaselineFailure(f"OpenCV's 5-point RANSAC aborted {attempts} times: "
+                raise BaselineFailure(f"OpenCV's 5-point {what} aborted {attempts} times: "
                                       f"{str(e).strip().splitlines()[-1]}") from e
             order = rng.permutation(n)
     if E is None or E.shape != (3, 3):
-        raise BaselineFailure("the 5-point RANSAC found no (unique) essential matrix")
+        raise BaselineFailure(f"the 5-point {what} found no (unique) essential matrix")
     inliers = np.zeros(n, bool)
     inliers[order] = mask[:, 0].astype(bool)
     if inliers.sum() < min_inliers:
-        raise BaselineFailure(f"the 5-point RANSAC kept {int(inliers.sum())} inliers (needs {min_inliers})")
+        raise BaselineFailure(f"the 5-point {what} kept {int(inliers.sum())} inliers (needs {min_inliers})")
     return E, inliers
 
 
