@@ -323,6 +323,7 @@ def test_the_sweep_verdict_reads_its_own_jobs_records_not_an_earlier_sweeps(tmp_
     with pytest.raises(SystemExit) as exited:
         callback.on_multirun_end(config)
     assert exited.value.code == 1
+    assert not callback.records.exists() and earlier.records.is_dir()  # its own records read and cleared
     captured = capsys.readouterr()
     assert captured.err.strip().splitlines() == [
         "error: 2 job(s) of the sweep failed (each folder has error.txt): multirun/default/seed=1; "

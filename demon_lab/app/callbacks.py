@@ -129,6 +129,10 @@ class MultirunTracking(Callback):
         from demon_lab.pipeline.tracking import TAG
 
         records = read_records(self.records) if self.records is not None else []
+        if self.records is not None:  # (read once: the folder is this sweep's alone)
+            import shutil
+
+            shutil.rmtree(self.records, ignore_errors=True)
         self.jobs = [{k: r[k] for k in ("overrides", "run_id", "status", "pass")} for r in records]
         failed = sorted(_shown(Path(r["folder"])) for r in records if r["status"] == "FAILED")
         if self.tracker is not None and self.parent is not None:
