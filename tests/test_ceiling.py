@@ -22,9 +22,11 @@ def test_precision_counts_the_vectors_within_each_distance_of_the_truth_among_th
     truth = np.zeros((1, 5, 2))
     flow = truth + np.array([[0.5, 0], [1.5, 0], [0, 3.0], [4.5, 0], [0, 0]])[None]
     truth[0, 4] = np.nan  # no truth there: not counted
-    assert ceiling.precision(flow, truth) == {"within_1px": 0.25, "within_2px": 0.5, "within_4px": 0.75}
-    flow[0, 0] = np.nan  # a vector the flow does not give is not within any distance
+    assert ceiling.precision(flow, truth) == {"within_1px": 0.25, "within_2px": 0.5, "within_4px": 0.75,
+                                              "median_px": 2.25}
+    flow[0, 0] = np.nan  # a vector the flow does not give is not within any distance, and infinitely far
     assert ceiling.precision(flow, truth)["within_1px"] == 0.0
+    assert ceiling.precision(flow, truth)["median_px"] == 3.75
 
 
 def test_every_reader_reads_the_true_motion_from_the_true_flow():
@@ -34,8 +36,8 @@ def test_every_reader_reads_the_true_motion_from_the_true_flow():
     out = ceiling.ceiling(sample["flow"], sample["flow"], sample)
     assert {out[f"within_{n}px"] for n in ceiling.PIXELS} == {1.0}
     for reader in ceiling.READERS:
-        assert out[f"{reader}_failed"] == 0.0, reader
-        assert out[f"{reader}_rot_deg"] < 0.1 and out[f"{reader}_tran_deg"] < 0.1, (reader, out)
+        assert out[f"{reader}/n_failed"] == 0.0, reader
+        assert out[f"{reader}/rot_deg"] < 0.1 and out[f"{reader}/tran_deg"] < 0.1, (reader, out)
 
 
 def test_the_oracles_pick_keeps_the_precise_vectors_and_a_reader_without_enough_fails():
@@ -61,8 +63,8 @@ def test_the_oracles_pick_keeps_the_precise_vectors_and_a_reader_without_enough_
     scale = np.array([w, h], dtype=np.float64)
     normalised = np.moveaxis(off / scale, -1, 0)
     out = ceiling.ceiling(normalised, sample["flow"], sample)
-    assert out["pick1_failed"] == 1.0 and math.isnan(out["pick1_rot_deg"]) and out["within_4px"] == 0.0
-    assert out["lmeds_failed"] == 0.0 and math.isfinite(out["lmeds_tran_deg"])
+    assert out["pick1/n_failed"] == 1.0 and math.isnan(out["pick1/rot_deg"]) and out["within_4px"] == 0.0
+    assert out["lmeds/n_failed"] == 0.0 and math.isfinite(out["lmeds/tran_deg"])
     with pytest.raises(ValueError, match="reader: expected one of"):
         ceiling.read_motion(off, K, "eight_point", truth)
 
@@ -84,7 +86,7 @@ def test_a_job_with_eval_ceiling_scores_the_bootstrap_flow_of_each_test_set_and_
         s = r.summary
         assert 0 <= s["ceiling/within_1px"] <= s["ceiling/within_2px"] <= s["ceiling/within_4px"] <= 1, r.name
         for reader in ceiling.READERS:
-            assert 0 <= s[f"ceiling/{reader}_failed"] <= 2 and f"ceiling/{reader}_tran_deg" in s, (r.name, reader)
+            assert 0 <= s[f"ceiling/{reader}/n_failed"] <= 2 and f"ceiling/{reader}/tran_deg" in s, (r.name, reader)
     plain = settings(compose_config(base))
     assert not any(k.startswith("ceiling/") for k in evaluate_test_sets(plain, chain, refined=False)[0].summary)
     assert run_key(plain) == run_key(settings(compose_config([*base, "eval.ceiling=false"]))) != run_key(job)
@@ -122,4 +124,4 @@ def test_a_reader_whose_solver_aborts_draws_again_and_fails_in_one_line_if_it_ke
     with pytest.raises(BaselineFailure, match="least median of squares aborted 3 times"):
         ceiling.read_motion(truth, K, "lmeds")
     out = ceiling.ceiling(sample["flow"], sample["flow"], sample)
-    assert out["lmeds_failed"] == 1.0 and out["ransac_failed"] == 1.0
+    assert out["lmeds/n_failed"] == 1.0 and out["ransac/n_failed"] == 1.0

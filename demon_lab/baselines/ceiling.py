@@ -17,7 +17,7 @@ grid with view 2's end points in view 1's camera:
 
 :func:`ceiling` gives both for one sample, scored against its ground-truth motion with DeMoN's
 motion errors (:func:`demon_lab.core.metrics.motion_errors`). A reader that finds no motion (too
-few vectors, no essential matrix) gives NaN errors and counts as failed (``*_failed``).
+few vectors, no essential matrix) gives NaN errors and counts as failed (``READER/n_failed``).
 """
 
 from __future__ import annotations
@@ -60,11 +60,14 @@ def pixel_flow(flow: np.ndarray, sample: Mapping[str, Any]) -> np.ndarray:
 
 def precision(flow_px: np.ndarray, truth_px: np.ndarray, pixels: tuple[int, ...] = PIXELS) -> dict[str, float]:
     """``within_Npx``: the share of the vectors with a finite truth whose end point lies within N pixels
-    of the truth's, for each N of ``pixels`` (NaN where no vector has a finite truth)."""
+    of the truth's, for each N of ``pixels``, and ``median_px``: the median of their distances (a vector
+    the flow does not give is infinitely far; NaN where no vector has a finite truth)."""
     error = np.linalg.norm(flow_px - truth_px, axis=-1)
     known = np.isfinite(truth_px).all(-1)
     error = np.where(np.isfinite(error), error, np.inf)[known]
-    return {f"within_{n}px": float((error <= n).mean()) if error.size else float("nan") for n in pixels}
+    if not error.size:
+        return {**{f"within_{n}px": float("nan") for n in pixels}, "median_px": float("nan")}
+    return {**{f"within_{n}px": float((error <= n).mean()) for n in pixels}, "median_px": float(np.median(error))}
 
 
 def read_motion(flow_px: np.ndarray, K: np.ndarray, reader: str, truth_px: np.ndarray | None = None,
@@ -96,7 +99,7 @@ def ceiling(flow: np.ndarray, truth: np.ndarray, sample: Mapping[str, Any], seed
             ransac_threshold_px: float = 1.0) -> dict[str, float]:
     """For one sample: the precision of ``flow`` against ``truth`` (both (2, h, w), normalised, on one
     grid) and, per reader, the rotation and translation errors of the motion it reads from ``flow``
-    (``READER_rot_deg``, ``READER_tran_deg``; NaN, and ``READER_failed`` 1, where it reads none).
+    (``READER/rot_deg``, ``READER/tran_deg``; NaN, and ``READER/n_failed`` 1, where it reads none).
     ``ransac_threshold_px``: at 256 pixels of width, scaled to the flow's (as the baselines' is)."""
     flow_px, truth_px = pixel_flow(flow, sample), pixel_flow(truth, sample)
     h, w = flow_px.shape[:2]
@@ -108,6 +111,6 @@ def ceiling(flow: np.ndarray, truth: np.ndarray, sample: Mapping[str, Any], seed
             errors, failed = motion_errors(motion, np.asarray(sample["motion"], dtype=np.float64)), 0.0
         except BaselineFailure:
             errors, failed = {"rot_deg": float("nan"), "tran_deg": float("nan")}, 1.0
-        out.update({f"{reader}_rot_deg": errors["rot_deg"], f"{reader}_tran_deg": errors["tran_deg"],
-                    f"{reader}_failed": failed})
+        out.update({f"{reader}/rot_deg": errors["rot_deg"], f"{reader}/tran_deg": errors["tran_deg"],
+                    f"{reader}/n_failed": failed})
     return out

@@ -162,8 +162,8 @@ def flow_ceiling(chain: DeMoN, dataset, job: JobSettings) -> dict[str, float]:
     """``eval.ceiling``: how much camera motion the bootstrap pass's flow (flow1's, at level 2; the
     ground truth's under ``oracle=flow``) carries on ``dataset``, and how much each reader of it loses
     (:func:`demon_lab.baselines.ceiling.ceiling`, against the ground-truth flow at the flow's grid):
-    means over the pairs with a known motion (``ceiling/within_1px``, ``ceiling/ransac_tran_deg``, ...;
-    ``ceiling/READER_failed``: the pairs a reader read no motion from)."""
+    means over the pairs with a known motion (``ceiling/within_1px``, ``ceiling/ransac/tran_deg``, ...;
+    ``ceiling/READER/n_failed``: the pairs a reader read no motion from)."""
     import numpy as np
 
     from demon_lab.baselines.ceiling import ceiling
@@ -188,7 +188,7 @@ def flow_ceiling(chain: DeMoN, dataset, job: JobSettings) -> dict[str, float]:
     out = {}
     for key in rows[0]:
         values = np.array([r[key] for r in rows], dtype=np.float64)
-        if key.endswith("_failed"):
+        if key.endswith("n_failed"):
             out[f"ceiling/{key}"] = float(values.sum())
         else:
             finite = values[np.isfinite(values)]
