@@ -138,9 +138,9 @@ tests/test_released.py)."""
 
 
 SWEPT = [e for e in EXPERIMENTS if e not in ("cpu_recipe", "cpu_design", "cpu_motion", "cpu_prior", "cpu_departures",
-                                             "learned_design", "learned_rerun", "baseline_thresholds")]
+                                             "learned_design", "learned_rerun", "baseline_thresholds", "ceiling")]
 """The experiments that declare a sweep (the probes of cpu_recipe, cpu_design, cpu_motion, cpu_prior,
-cpu_departures, learned_design, learned_rerun and baseline_thresholds are single jobs, the commands of their
+cpu_departures, learned_design, learned_rerun, baseline_thresholds and ceiling are single jobs, the commands of their
 study specs in ablations/, which tests/test_report.py composes)."""
 
 

@@ -328,3 +328,31 @@ def test_a_profiled_stage_logs_its_loops_largest_parts_and_keeps_its_keys():
     assert not identity.is_semantic("trainer.profile")
     assert identity.run_key(settings(compose_config(["scale=smoke", "trainer.profile=true"]))) == \
         identity.run_key(settings(compose_config(["scale=smoke"])))
+
+
+@pytest.mark.slow
+def test_the_fit_design_trains_every_stage_with_its_motion_fit_and_geometric_residual(tmp_path):
+    """design=fit end to end at the smoke scale: every stage run FINISHED, dm1, dm2 and the iterative
+    stage log the fitted motion's geometric residual among their loss terms, and every pass's motion
+    is a rotation and a unit translation (the fit's)."""
+    from demon_lab.app.job import run
+
+    steps = [f"scale.steps.{s}={n}" for s, n in (("flow1", 4), ("dm1", 4), ("flow2", 2), ("dm2", 2), ("iterative", 2),
+                                                 ("refine", 2))]
+    cfg = compose_config([*smoke_overrides(tmp_path), "design=fit", *steps, "threads=1", "iterations=1",
+                          "schedule.stages.flow1.keep_best=0", "schedule.stages.dm1.keep_best=0",
+                          "schedule.stages.iterative.keep_best=0", "schedule.stages.flow1.fresh_scenes=0",
+                          "schedule.stages.dm1.fresh_scenes=0"])
+    result = run(cfg)
+    assert result["status"] == "finished"
+    c = client(tmp_path)
+    stages = c.search_runs([c.get_experiment_by_name("default").experiment_id],
+                           filter_string=f"tags.`mlflow.parentRunId` = '{result['run_id']}'")
+    by_stage = {r.data.tags["demon_lab.stage"]: r for r in stages}
+    assert len(by_stage) == 6 and all(r.info.status == "FINISHED" for r in stages)
+    for stage in ("dm1", "dm2", "iterative"):
+        terms = [k for k in by_stage[stage].data.metrics if k.endswith("fit_residual")]
+        assert terms and all(math.isfinite(by_stage[stage].data.metrics[k]) for k in terms), (stage, terms)
+    assert not [k for k in by_stage["flow1"].data.metrics if k.endswith("fit_residual")]
+    metrics = c.get_run(result["run_id"]).data.metrics
+    assert all(math.isfinite(metrics[f"test/synthetic_sun3d/it{i}/tran_deg"]) for i in (0, 1))

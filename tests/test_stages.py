@@ -20,7 +20,7 @@ from tests.jobs import client, compose_config, settings, smoke_overrides
 
 
 def test_each_stage_kind_carries_its_loss_nets_oracles_and_scores_and_the_rate_schedules_are_implemented():
-    from demon_lab.core.losses import WEIGHT_KEYS
+    from demon_lab.core.losses import OPTIONAL_WEIGHTS, WEIGHT_KEYS
     from demon_lab.nets.chain import ORACLES
     from demon_lab.pipeline.kinds import STAGE_SPECS, StageSpec
     from demon_lab.pipeline.schema import LR_SCHEDULES
@@ -30,7 +30,7 @@ def test_each_stage_kind_carries_its_loss_nets_oracles_and_scores_and_the_rate_s
     for kind, spec in STAGE_SPECS.items():  # each kind is one class: its own loss, nets, weights, oracles
         assert issubclass(spec, StageSpec) and spec.loss is not StageSpec.loss, kind
         stage = spec(name=kind, steps=10, lr=1e-3)
-        assert set(stage.trained_nets()) <= nets and set(stage.weight_keys()) <= set(WEIGHT_KEYS), kind
+        assert set(stage.trained_nets()) <= nets and set(stage.weight_keys()) <= {*WEIGHT_KEYS, *OPTIONAL_WEIGHTS}, kind
         assert set(spec.oracles) - {None} <= set(ORACLES), kind
     flow2 = STAGE_SPECS["flow"](name="flow2", steps=1, lr=1.0, net="flow2", sig_start=1.0)
     assert flow2.trained_nets() == ("flow2",) and flow2.validation_passes() == 1

@@ -19,13 +19,18 @@ import torch
 
 from demon_lab.core import geometry as geo
 from demon_lab.core import loss_maps
+from demon_lab.core.epipolar import sampson_px
 from demon_lab.core.execution import float32
 
 EPS = 1e-5
 WEIGHT_KEYS = ("flow", "flow_conf", "flow_sig", "flow_conf_sig", "depth", "depth_sig", "normals",
                "rotation", "translation", "refine_depth", "refine_depth_sig", "refine_normals")
 FLOW_WEIGHTS = ("flow", "flow_conf", "flow_sig", "flow_conf_sig")
-DEPTH_MOTION_WEIGHTS = ("depth", "depth_sig", "normals", "rotation", "translation")
+OPTIONAL_WEIGHTS = {"fit_residual": 0.0}
+"""Weights a preset may leave out, with the value it then has (added after the presets were written; a
+key leaves a weight at this value out, so older keys hold): ``fit_residual``, the geometric residual of
+the predicted motion (:func:`motion_residual`)."""
+DEPTH_MOTION_WEIGHTS = ("depth", "depth_sig", "normals", "rotation", "translation", "fit_residual")
 REFINE_WEIGHTS = ("refine_depth", "refine_depth_sig", "refine_normals")
 FLOW_SIG_WEIGHTS = ("flow_sig", "flow_conf_sig")
 
@@ -109,11 +114,13 @@ def flow_loss(flowconf5: torch.Tensor, flowconf2: torch.Tensor, gt: Mapping[str,
 @float32
 def depth_motion_loss(inv_depth: torch.Tensor, normals: torch.Tensor, motion: torch.Tensor,
                       gt: Mapping[str, torch.Tensor], weights: Mapping[str, float],
-                      ramp: float = 1.0) -> tuple[torch.Tensor, Terms]:
-    """Loss of a depth-motion net: inverse depth, its sig, normals at level 2, rotation, translation.
+                      ramp: float = 1.0, intrinsics: torch.Tensor | None = None) -> tuple[torch.Tensor, Terms]:
+    """Loss of a depth-motion net: inverse depth, its sig, normals at level 2, rotation, translation,
+    and where ``weights`` give ``fit_residual`` > 0 the motion's geometric residual
+    (:func:`motion_residual`, with ``intrinsics``; not DeMoN's).
 
-    ``gt``: ``inv_depth2``, ``normals2`` (level 2) and ``motion`` (B, 6). The predicted depth's sig
-    uses eps 0.01, the GT's 0.001 (as DeMoN).
+    ``gt``: ``inv_depth2``, ``normals2`` (level 2) and ``motion`` (B, 6), and ``flow2`` for the residual.
+    The predicted depth's sig uses eps 0.01, the GT's 0.001 (as DeMoN).
     """
     terms: Terms = {
         "depth2": weights["depth"] * pointwise_l2(inv_depth, gt["inv_depth2"]),
@@ -122,7 +129,22 @@ def depth_motion_loss(inv_depth: torch.Tensor, normals: torch.Tensor, motion: to
         "rotation": weights["rotation"] * vector_loss(motion[:, :3], gt["motion"][:, :3]),
         "translation": weights["translation"] * vector_loss(motion[:, 3:], gt["motion"][:, 3:]),
     }
+    if weights.get("fit_residual", 0.0) > 0:
+        if intrinsics is None:
+            raise ValueError("loss.fit_residual: the motion's geometric residual needs the intrinsics")
+        terms["fit_residual"] = weights["fit_residual"] * motion_residual(motion, gt["flow2"], intrinsics)
     return _weighted(terms), terms
+
+
+@float32
+def motion_residual(motion: torch.Tensor, flow: torch.Tensor, intrinsics: torch.Tensor) -> torch.Tensor:
+    """The geometric residual of a predicted motion (B, 6): the mean, over the pixels where the
+    ground-truth ``flow`` (B, 2, h, w) is known, of ``log(1 + d)`` with ``d`` the Sampson distance in
+    pixels of that flow's correspondences to the motion's epipolar geometry
+    (:func:`demon_lab.core.epipolar.sampson_px`): zero for the true motion, and a gradient for every
+    motion, robust to the pixels far off."""
+    distance, valid = sampson_px(flow.detach(), motion, intrinsics)
+    return (torch.log1p(distance) * valid).sum() / valid.sum().clamp_min(1)
 
 
 @float32
@@ -235,11 +257,12 @@ def preset(name: str) -> dict[str, float]:
 
 def check_weights(weights: Mapping[str, float]) -> dict[str, float]:
     missing = [k for k in WEIGHT_KEYS if k not in weights]
-    extra = [k for k in weights if k not in WEIGHT_KEYS and k != "name"]
+    extra = [k for k in weights if k not in WEIGHT_KEYS and k not in OPTIONAL_WEIGHTS and k != "name"]
     if missing or extra:
         raise ValueError(f"loss: weights {missing or extra} {'missing' if missing else 'unknown'}; "
-                         f"expected {', '.join(WEIGHT_KEYS)}")
+                         f"expected {', '.join(WEIGHT_KEYS)} (and optionally {', '.join(OPTIONAL_WEIGHTS)})")
     out = {k: float(weights[k]) for k in WEIGHT_KEYS}
+    out |= {k: float(weights.get(k, v)) for k, v in OPTIONAL_WEIGHTS.items()}
     bad = [k for k, v in out.items() if not v >= 0]
     if bad:
         raise ValueError(f"loss.{bad[0]}: expected a non-negative weight, got {out[bad[0]]}")

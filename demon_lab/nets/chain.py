@@ -25,6 +25,7 @@ from torch import nn
 
 from demon_lab.core import geometry as geo
 from demon_lab.core import loss_maps, warping
+from demon_lab.core.epipolar import fit_motion
 from demon_lab.core.execution import float32
 from demon_lab.nets.blocks import VARIANTS, check_correlation, check_size
 from demon_lab.nets.depth_motion_net import DepthMotion, DepthMotionNet
@@ -45,12 +46,23 @@ def _choices(values: tuple) -> str:
 
 
 def check_options(variant: str, width: float, compat: str | None, correlation, priors: dict[str, str | None],
-                  prefix: str = "") -> None:
+                  prefix: str = "", motion_fit: int | None = None) -> None:
     """The rules of the chain's options, one ValueError line naming the option (``prefix`` + its name:
     ``model.`` where a config sets them): the variant and compat, a positive width, the correlation
-    front, each prior's choices, ``ransac_prior``'s flow1 prior, and DeMoN's released graph
-    (``compat=demon_original``) with neither a correlation front nor priors."""
+    front, each prior's choices, ``ransac_prior``'s flow1 prior, the motion fit's steps (a positive
+    integer, without a motion prior: the fit reads the motion itself), and DeMoN's released graph
+    (``compat=demon_original``) with neither a correlation front, nor priors, nor a motion fit."""
     p = prefix
+    if motion_fit is not None:
+        if isinstance(motion_fit, bool) or not isinstance(motion_fit, int) or motion_fit < 1:
+            raise ValueError(f"{p}motion_fit: expected null or a number of Gauss-Newton steps >= 1, got {motion_fit!r}")
+        if compat == "demon_original":
+            raise ValueError(f"{p}motion_fit: compat=demon_original reproduces DeMoN's released graph, whose motion "
+                             f"is a fully connected head; leave {p}motion_fit null")
+        for key in ("dm1_prior", "dm2_prior"):
+            if priors.get(key) is not None:
+                raise ValueError(f"{p}{key}: the motion fit (motion_fit={motion_fit}) reads the motion from the flow "
+                                 f"itself, not as a correction of a prior motion; leave {p}{key} null")
     if variant not in VARIANTS:
         raise ValueError(f"{p}variant: expected one of {_choices(VARIANTS)}, got {variant!r}")
     if isinstance(width, bool) or not isinstance(width, int | float) or not width > 0:
@@ -197,17 +209,22 @@ class DeMoN(nn.Module):
     motion (which it reads, as DeMoN's does), starting at none, instead of the motion itself; or
     None (:mod:`demon_lab.nets.prior`; not DeMoN's design). ``flow2_prior``: ``"previous"`` makes the
     iterative flow net predict a correction of the previous pass's flow (at levels 2 and 5), starting
-    at none, instead of the flow itself; or None (not DeMoN's design). ``nets``: nets of one's own for
+    at none, instead of the flow itself; or None (not DeMoN's design). ``motion_fit``: the depth-motion
+    nets predict a weight per pixel and their motion is the weighted fit to the flow they read, with
+    this many Gauss-Newton steps (:func:`demon_lab.core.epipolar.fit_motion`), not their fully
+    connected head's; or None (DeMoN's). ``nets``: nets of one's own for
     some of the chain's slots (``flow1``, ``dm1``, ``flow2``, ``dm2``, ``refine``; each with the
     slot's signature, :mod:`demon_lab.nets.slots`), in place of DeMoN's."""
 
     def __init__(self, variant: str = "v1", width: float = 1.0, size: tuple[int, int] = (192, 256),
                  compat: str | None = None, correlation: tuple[int, int] | None = None,
                  flow1_prior: str | None = None, dm1_prior: str | None = None, flow2_prior: str | None = None,
-                 dm2_prior: str | None = None, nets: Mapping[str, nn.Module] | None = None):
+                 dm2_prior: str | None = None, nets: Mapping[str, nn.Module] | None = None,
+                 motion_fit: int | None = None):
         super().__init__()
         check_options(variant, width, compat, correlation,
-                      dict(flow1_prior=flow1_prior, dm1_prior=dm1_prior, flow2_prior=flow2_prior, dm2_prior=dm2_prior))
+                      dict(flow1_prior=flow1_prior, dm1_prior=dm1_prior, flow2_prior=flow2_prior, dm2_prior=dm2_prior),
+                      motion_fit=motion_fit)
         check_size(*size)
         given = dict(nets or {})
         if set(given) - set(SLOTS):
@@ -216,12 +233,14 @@ class DeMoN(nn.Module):
         self.correlation = None if correlation is None else check_correlation(correlation)
         self.flow1_prior, self.dm1_prior = flow1_prior, dm1_prior
         self.flow2_prior, self.dm2_prior = flow2_prior, dm2_prior
+        self.motion_fit = motion_fit
         kw = dict(variant=variant, width=width, size=self.size)
+        fit = dict(fit=True) if motion_fit else {}
         own = {  # DeMoN's net of each slot that none is given for
             "flow1": lambda: FlowNet(iterative=False, correlation=self.correlation, prior=flow1_prior, **kw),
-            "dm1": lambda: DepthMotionNet(iterative=dm1_prior is not None, **kw),  # + the depth from the prior
+            "dm1": lambda: DepthMotionNet(iterative=dm1_prior is not None, **kw, **fit),  # + the depth from the prior
             "flow2": lambda: FlowNet(iterative=True, correlation=self.correlation, **kw),
-            "dm2": lambda: DepthMotionNet(iterative=True, **kw),
+            "dm2": lambda: DepthMotionNet(iterative=True, **kw, **fit),
             "refine": lambda: RefineNet(variant=variant, width=width)}
         for slot in SLOTS:
             setattr(self, ATTRIBUTES[slot], given[slot] if slot in given else own[slot]())
@@ -267,7 +286,8 @@ class DeMoN(nn.Module):
         the motion it returns is that motion corrected; ``prior`` is that motion where the caller
         has it, :meth:`prior_motion`)."""
         if not self.dm1_prior:
-            return self.dm1(pair, depth_motion_net_inputs(image2_2, flow, conf, None, intrinsics, self.compat))
+            return self.fitted(self.dm1(pair, depth_motion_net_inputs(image2_2, flow, conf, None, intrinsics,
+                                                                       self.compat)), flow, intrinsics, "dm1")
         prior = self.prior_motion(flow, intrinsics, prior_flow) if prior is None else prior
         dm = self.dm1(pair, depth_motion_net_inputs(image2_2, flow, conf, prior, intrinsics, self.compat))
         return replace(dm, motion=dm.motion + prior)
@@ -299,7 +319,19 @@ class DeMoN(nn.Module):
         ``dm2_prior``: the motion it returns is the previous motion corrected)."""
         prev_motion = prev_motion.detach()
         dm = self.dm2(pair, depth_motion_net_inputs(image2_2, flow, conf, prev_motion, intrinsics, self.compat))
-        return replace(dm, motion=dm.motion + prev_motion) if self.dm2_prior else dm
+        if self.dm2_prior:
+            return replace(dm, motion=dm.motion + prev_motion)
+        return self.fitted(dm, flow, intrinsics, "dm2")
+
+    def fitted(self, dm: DepthMotion, flow: torch.Tensor, intrinsics: torch.Tensor, slot: str) -> DepthMotion:
+        """``dm`` with ``motion_fit``: its motion the weighted fit to ``flow`` (the flow the net read) with
+        the weights it predicts (:func:`demon_lab.core.epipolar.fit_motion`); without: ``dm`` as it is."""
+        if not self.motion_fit:
+            return dm
+        if dm.weights is None:
+            raise ValueError(f"model.motion_fit: the {slot} net returns no per-pixel weights (DepthMotion.weights) "
+                             f"for the motion fit")
+        return replace(dm, motion=fit_motion(flow, dm.weights, intrinsics, self.motion_fit))
 
     def flow_net2(self, pair: torch.Tensor, image2_2: torch.Tensor, intrinsics: torch.Tensor,
                   src: Prediction | GroundTruthInputs, prev: Prediction) -> tuple[torch.Tensor, torch.Tensor]:

@@ -19,6 +19,7 @@ class DepthMotion:
     normals: torch.Tensor  # (B, 3, H/4, W/4), raw (not re-normalised)
     motion: torch.Tensor  # (B, 6) [r, t]
     scale: torch.Tensor  # (B, 1)
+    weights: torch.Tensor | None = None  # (B, 1, H/4, W/4) in (0, 1): the motion fit's (fit=True), else None
 
 
 def _linear(c_in: int, c_out: int) -> nn.Linear:
@@ -35,16 +36,19 @@ class DepthMotionNet(nn.Module):
         iterative: 8 extra input channels at level 2 (warped image 2, flow + confidence, depth from
             the flow and the previous motion) instead of the bootstrap net's 7.
         variant, width, size: as :class:`demon_lab.nets.flow_net.FlowNet`.
+        fit: the depth head predicts a fifth channel, each pixel's weight in the motion fit
+            (``model.motion_fit``, :func:`demon_lab.core.epipolar.fit_motion`): a sigmoid, starting at
+            0.5 everywhere (its layer's weights at zero). Not DeMoN's design.
 
     ``forward(pair, extra)`` returns a :class:`DepthMotion`. The motion head predicts 7 values
     [r (3), t (3), s (1)]; the depth is ``s * raw`` (s unconstrained, per sample).
     """
 
     def __init__(self, iterative: bool = False, variant: str = "v1", width: float = 1.0,
-                 size: tuple[int, int] = (192, 256)):
+                 size: tuple[int, int] = (192, 256), fit: bool = False):
         super().__init__()
         check_variant(variant)
-        self.iterative, self.variant = iterative, variant
+        self.iterative, self.variant, self.fit = iterative, variant, fit
         c = lambda n: scaled(n, width)  # noqa: E731
         v1 = variant == "v1"
         level5 = (size[0] // 32, size[1] // 32)
@@ -67,7 +71,11 @@ class DepthMotionNet(nn.Module):
         self.refine4 = UpConv(c5, c(256))
         self.refine3 = UpConv(c(256) + c(256), c(128))
         self.refine2 = UpConv(c(128) + c(128), c(64))
-        self.predict_depth2 = Head(c(64) + c(64), 4, variant, hidden=c(24))
+        self.predict_depth2 = Head(c(64) + c(64), 5 if fit else 4, variant, hidden=c(24))
+        if fit:
+            with torch.no_grad():  # every pixel's weight starts at sigmoid(0) = 0.5
+                self.predict_depth2.out.conv.weight[4:].zero_()
+                self.predict_depth2.out.conv.bias[4:].zero_()
 
     def forward(self, pair: torch.Tensor, extra: torch.Tensor) -> DepthMotion:
         x = torch.cat([self.conv2(self.conv1(pair)), self.conv2_extra(extra)], 1)
@@ -89,4 +97,5 @@ class DepthMotionNet(nn.Module):
         out = self.predict_depth2(r2).float()
         scale = motion_scale[:, 6:7]
         return DepthMotion(inv_depth=out[:, :1] * scale[:, :, None, None], normals=out[:, 1:4],
-                           motion=motion_scale[:, :6], scale=scale)
+                           motion=motion_scale[:, :6], scale=scale,
+                           weights=torch.sigmoid(out[:, 4:5]) if self.fit else None)

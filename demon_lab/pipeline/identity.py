@@ -39,6 +39,7 @@ from pathlib import Path
 from typing import Any
 
 from demon_lab.core.execution import normalize_precision, resolve_accelerator
+from demon_lab.core.losses import OPTIONAL_WEIGHTS
 
 CODE_VERSION = 2
 """Bump when the training code changes what a stage produces."""
@@ -49,7 +50,7 @@ EXECUTION_KEYS = ("channels_last", "compile")
 NEUTRAL: dict[str, Any] = {
     "model.compat": None, "model.weights": None, "model.correlation": None,
     "model.flow1_prior": None, "model.dm1_prior": None, "model.flow2_prior": None, "model.dm2_prior": None,
-    "precision": "32-true", "eval.ceiling": False,
+    "precision": "32-true", "eval.ceiling": False, "model.motion_fit": None, "loss.fit_residual": 0.0,
     "model.nets": {"flow1": None, "dm1": None, "flow2": None, "dm2": None, "refine": None},
     **{f"model.nets.{slot}": None for slot in ("flow1", "dm1", "flow2", "dm2", "refine")},
 }
@@ -218,7 +219,9 @@ def describe_stage(job, name: str, upstream: dict[str, str]) -> dict[str, Any]:
         # Only the weights this stage's loss reads: ablations that change another stage's terms
         # (no_normals for the flow stages, say, or no_sig for a flow stage without sig terms)
         # share this stage.
-        "loss": {k: float(config["loss"][k]) for k in spec.weight_keys()},
+        # (an optional weight, OPTIONAL_WEIGHTS, where the preset does not write it: its default, left out as neutral)
+        "loss": leave_out_neutral({k: float(config["loss"].get(k, OPTIONAL_WEIGHTS.get(k)))
+                                   for k in spec.weight_keys()}, "loss."),
         "train_data": without_render_cache(data["train"]),  # not where its scenes are cached
         # the held-apart sets that choose the kept nets (keep_best; left out where the stage keeps its last)
         **({"keep_best_on": without_render_cache(data["val"])} if spec.keep_best else {}),
@@ -231,11 +234,11 @@ def describe_stage(job, name: str, upstream: dict[str, str]) -> dict[str, Any]:
     }
 
 
-MODEL_OPTION_FROM = {"dm1_prior": "dm1", "flow2_prior": "flow2", "dm2_prior": "dm2"}
+MODEL_OPTION_FROM = {"dm1_prior": "dm1", "flow2_prior": "flow2", "dm2_prior": "dm2", "motion_fit": "dm1"}
 """Model options that change only the nets from a stage on: the stages before it leave them out of
 their keys (so flow1 is shared between chains with and without ``dm1_prior``, flow1 and dm1
-between chains with and without ``flow2_prior``, and flow1, dm1 and flow2 between chains with and
-without ``dm2_prior``)."""
+between chains with and without ``flow2_prior``, flow1, dm1 and flow2 between chains with and
+without ``dm2_prior``, and flow1 between chains with and without ``motion_fit``)."""
 
 
 def _stage_model(model: dict[str, Any], name: str, names: list[str]) -> dict[str, Any]:

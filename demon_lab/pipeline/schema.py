@@ -38,6 +38,7 @@ class ModelSpec:
     dm1_prior: str | None
     flow2_prior: str | None
     dm2_prior: str | None
+    motion_fit: int | None
     channels_last: bool
     compile: bool
     weights: str | None
@@ -57,7 +58,7 @@ class ModelSpec:
         nets = values.get("nets") or {}
         try:
             check_options(values["variant"], values["width"], values["compat"], values["correlation"],
-                          {k: values[k] for k in PRIOR_KEYS}, prefix="model.")
+                          {k: values[k] for k in PRIOR_KEYS}, prefix="model.", motion_fit=values["motion_fit"])
             if not isinstance(nets, dict):
                 raise ValueError(f"model.nets: expected a mapping of slots to nets, got {nets!r}")
             for slot, node in nets.items():
@@ -75,6 +76,11 @@ class ModelSpec:
     def priors(self) -> dict[str, str | None]:
         """The prior options as the chain takes them (keyword arguments)."""
         return {k: getattr(self, k) for k in PRIOR_KEYS}
+
+    def net_options(self) -> dict[str, str | int | None]:
+        """The options that decide the chain's nets beside variant, width and correlation, as the chain
+        takes them (keyword arguments): the priors and the motion fit."""
+        return {**self.priors(), "motion_fit": self.motion_fit}
 
     def plugins(self) -> dict[str, Any]:
         """The nets of one's own, built from their configs (``nets``), by slot: the class its

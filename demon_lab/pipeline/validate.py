@@ -65,7 +65,7 @@ def _model_files(job: JobSettings) -> None:
         raise ConfigError(f"model.weights: {weights}: no such file")
     from demon_lab.pipeline.weights import check_fits
 
-    why = check_fits(weights, model.variant, model.width, job.data.size, model.correlation, **model.priors())
+    why = check_fits(weights, model.variant, model.width, job.data.size, model.correlation, **model.net_options())
     if why:
         raise ConfigError(f"model.weights: {why}")
     if not job.train:  # evaluated as they are: the passes run must not fall back on untrained nets

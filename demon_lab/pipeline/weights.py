@@ -86,7 +86,7 @@ def check_fits(path: str | Path, variant: str, width: float, size: tuple[int, in
                correlation: tuple[int, int] | None = None, **priors: str | None) -> str | None:
     """Why the weights file does not fit the chain a config builds, or None (shapes only: no
     weights are copied, and the chain is built on the meta device). ``priors``: the chain's prior
-    options (``flow1_prior=...``)."""
+    options and motion fit (``flow1_prior=...``, ``motion_fit=...``)."""
     from demon_lab.nets import DeMoN
 
     try:

@@ -63,7 +63,8 @@ class DepthMotionStage(StageSpec):
         else:  # (the inputs are built without gradient)
             dm = chain.depth_motion2(pair, image2_2, flow, conf, prev.motion, K)
         ramp = stage.ramp(2.0 if self.net == "dm1" else 1.0)
-        return losses.depth_motion_loss(dm.inv_depth, dm.normals, dm.motion, gt, stage.weights, ramp=ramp)
+        return losses.depth_motion_loss(dm.inv_depth, dm.normals, dm.motion, gt, stage.weights, ramp=ramp,
+                                        intrinsics=K)
 
 
 def _bootstrap_flow(chain: DeMoN, pair, K, prior_flow=None, prior_motion=None):

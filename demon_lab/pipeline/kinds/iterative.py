@@ -79,7 +79,7 @@ class IterativeStage(StageSpec):
                                                   torch.cat([out.flow, out.conf], 1), gt_all,
                                                   stage.weights, ramp=flow_sig, level5=0.0)
         dm_total, dm_terms = losses.depth_motion_loss(out.inv_depth, out.normals, out.motion, gt_all,
-                                                      stage.weights, ramp=1.0)
+                                                      stage.weights, ramp=1.0, intrinsics=K)
         detached = Prediction(*(t.detach() for t in (out.flow, out.conf, out.flow5, out.conf5,
                                                        out.inv_depth, out.normals, out.motion)))
         stage.state["queue"] = queue + [(combined[i][0], prediction_row(detached, i))

@@ -35,8 +35,8 @@ def build_chain(job: JobSettings) -> DeMoN:
     loaded (:func:`demon_lab.pipeline.weights.load_weights`); its nets in channels-last layout and
     compiled when ``model.channels_last`` / ``model.compile`` ask for it."""
     model = job.model
-    chain = DeMoN(model.variant, model.width, tuple(job.data.size), model.compat, model.correlation, **model.priors(),
-                  nets=model.plugins())
+    chain = DeMoN(model.variant, model.width, tuple(job.data.size), model.compat, model.correlation,
+                  **model.net_options(), nets=model.plugins())
     if model.weights:
         from demon_lab.pipeline.weights import load_weights
 

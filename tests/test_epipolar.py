@@ -1,0 +1,138 @@
+"""The motion layer with geometry in it (model.motion_fit): the weighted fit of the camera motion to a
+flow, its gradient, the geometric residual, and the chain and keys that use it."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from demon_lab.core import losses
+from demon_lab.core.epipolar import fit_motion, sampson_px
+from demon_lab.core.metrics import motion_errors
+from demon_lab.nets.chain import DeMoN, ground_truth_inputs
+
+
+def _pairs(presets=("synthetic_sun3d", "synthetic_scenes11"), seeds=(0, 1, 2), size=(96, 128)):
+    """Rendered pairs as a batch: image1, image2, intrinsics, inv_depth (B, 1, H, W), motion, and the
+    true flow at level 2."""
+    from demon_lab.data import synthetic
+
+    samples = [synthetic.render_pair(p, s, size, supersample=1) for p in presets for s in seeds]
+    batch = {k: torch.stack([torch.as_tensor(s[k]).float() for s in samples])
+             for k in ("image1", "image2", "intrinsics", "inv_depth", "motion")}
+    if batch["inv_depth"].dim() == 3:
+        batch["inv_depth"] = batch["inv_depth"][:, None]
+    batch["flow2"] = ground_truth_inputs(batch, batch["intrinsics"]).flow
+    return batch
+
+
+def _degrees(motion: torch.Tensor, truth: torch.Tensor) -> list[dict[str, float]]:
+    return [motion_errors(m.detach().double().numpy(), t.double().numpy()) for m, t in zip(motion, truth, strict=True)]
+
+
+def test_on_the_true_flow_with_uniform_weights_the_fit_returns_the_true_motion():
+    """Every rendered pair of both presets: rotation and translation within 0.1 degrees (they are
+    within 1e-3 degrees), for 1 and 3 steps, and its Sampson residual is zero."""
+    batch = _pairs()
+    for steps in (1, 3):
+        motion = fit_motion(batch["flow2"], torch.ones_like(batch["flow2"][:, :1]), batch["intrinsics"], steps)
+        for e in _degrees(motion, batch["motion"]):
+            assert e["rot_deg"] < 0.1 and e["tran_deg"] < 0.1, (steps, e)
+    distance, valid = sampson_px(batch["flow2"], batch["motion"], batch["intrinsics"])
+    assert valid.float().mean() > 0.5 and distance[valid].max() < 1e-3
+
+
+def test_the_weights_decide_which_vectors_the_motion_is_read_from():
+    """A third of the vectors moved 3-8 px off: with uniform weights the fit is pulled off the true
+    motion; with those vectors' weights at zero it reads the true motion again."""
+    batch = _pairs(seeds=(0, 1))
+    flow, K = batch["flow2"], batch["intrinsics"]
+    generator = torch.Generator().manual_seed(0)
+    off = torch.rand(flow[:, :1].shape, generator=generator) < 1 / 3
+    h, w = flow.shape[2:]
+    shift = 3 + 5 * torch.rand(flow.shape, generator=generator)
+    shift = shift * torch.sign(torch.randn(flow.shape, generator=generator))
+    corrupted = torch.where(off, flow + shift / torch.tensor([w, h]).view(1, 2, 1, 1), flow)
+    uniform = _degrees(fit_motion(corrupted, torch.ones_like(off, dtype=torch.float32), K, 1), batch["motion"])
+    picked = _degrees(fit_motion(corrupted, (~off).float(), K, 1), batch["motion"])
+    assert max(e["tran_deg"] for e in uniform) > 2.0, uniform
+    assert all(e["rot_deg"] < 0.1 and e["tran_deg"] < 0.1 for e in picked), picked
+
+
+def test_the_fits_gradient_in_the_weights_and_the_flow_is_the_derivative_of_its_steps():
+    """torch.autograd.gradcheck on a small noisy flow in float64: the gradient of the Gauss-Newton steps
+    (with their reweighting) matches finite differences of the whole fit, whose start carries no
+    gradient but, after enough steps, no longer moves the result."""
+    batch = _pairs(presets=("synthetic_sun3d",), seeds=(1,), size=(64, 96))
+    flow = ground_truth_inputs(batch, batch["intrinsics"]).flow[:, :, :8, :12].double()
+    flow = flow + 0.01 * torch.randn(flow.shape, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
+    weights = torch.rand(flow[:, :1].shape, generator=torch.Generator().manual_seed(2), dtype=torch.float64) + 0.5
+    K = batch["intrinsics"].double()
+    assert torch.autograd.gradcheck(lambda w, f: fit_motion(f, w, K, 20),
+                                    (weights.requires_grad_(), flow.requires_grad_()), eps=1e-6, atol=1e-4, rtol=1e-3,
+                                    fast_mode=True)
+
+
+def test_the_motions_geometric_residual_is_zero_for_the_true_motion_and_gives_a_gradient_otherwise():
+    batch = _pairs(seeds=(0,))
+    K, flow = batch["intrinsics"], batch["flow2"]
+    assert losses.motion_residual(batch["motion"], flow, K) < 1e-4
+    wrong = (batch["motion"] + torch.tensor([0.02, -0.01, 0.0, 0.3, 0.0, 0.0])).requires_grad_()
+    residual = losses.motion_residual(wrong, flow, K)
+    residual.backward()
+    assert residual > 0.1 and torch.isfinite(wrong.grad).all() and wrong.grad.abs().sum() > 0
+    weights = {k: 1.0 for k in losses.WEIGHT_KEYS}
+    gt = losses.ground_truth(batch)
+    _, plain = losses.depth_motion_loss(gt["inv_depth2"], gt["normals2"], wrong, gt, weights)
+    _, fitted = losses.depth_motion_loss(gt["inv_depth2"], gt["normals2"], wrong, gt, {**weights, "fit_residual": 2.0},
+                                         intrinsics=K)
+    assert "fit_residual" not in plain and float(fitted["fit_residual"]) == pytest.approx(2 * float(residual), rel=1e-5)
+
+
+def test_an_untrained_chain_with_the_fit_reads_the_true_motion_from_the_true_flow():
+    """The chain's bootstrap pass under oracle=flow, its nets untrained (every weight 0.5): the
+    motion is the true motion (within 0.1 degrees), and each iterative pass fits again; the loss's
+    gradient reaches the depth-motion net's weight channel."""
+    batch = _pairs(seeds=(0,), size=(64, 96))
+    chain = DeMoN("v1", 0.125, (64, 96), motion_fit=3)
+    out = chain(batch["image1"], batch["image2"], batch["intrinsics"], iterations=1, oracle="flow",
+                gt=batch, refine=False)
+    for p in out.passes:
+        for e in _degrees(p.motion, batch["motion"]):
+            assert e["rot_deg"] < 0.1 and e["tran_deg"] < 0.1, e
+    flow = batch["flow2"] + 0.002 * torch.randn(batch["flow2"].shape, generator=torch.Generator().manual_seed(0))
+    pair = torch.cat([batch["image1"], batch["image2"]], 1)
+    dm = chain.depth_motion1(pair, batch["image2"][:, :, ::4, ::4], flow, torch.ones_like(flow), batch["intrinsics"])
+    (dm.motion - batch["motion"]).square().sum().backward()
+    grad = chain.dm1.predict_depth2.out.conv.weight.grad
+    assert grad is not None and grad[4].abs().sum() > 0 and torch.isfinite(grad).all()
+
+
+@pytest.mark.parametrize("options, message", [
+    (dict(motion_fit=0), "motion_fit: expected null or a number of Gauss-Newton steps >= 1"),
+    (dict(motion_fit=3, dm1_prior="ransac"), "dm1_prior: the motion fit"),
+    (dict(motion_fit=3, dm2_prior="previous"), "dm2_prior: the motion fit"),
+    (dict(motion_fit=2, compat="demon_original"), "motion_fit: compat=demon_original"),
+])
+def test_the_fits_option_is_checked(options, message):
+    with pytest.raises(ValueError, match=message):
+        DeMoN("v1", 0.125, (64, 96), **options)
+
+
+def test_the_fit_design_shares_the_learned_designs_flow1_and_leaves_every_other_key_as_it_was():
+    """design=fit changes dm1 on (model.motion_fit is a dm1 option; loss.fit_residual enters the
+    depth-motion stages' keys only where it is set), so its flow1 is the learned design's, and the
+    learned design's keys do not hold the new options."""
+    from jobs import compose_config, settings
+
+    from demon_lab.pipeline.stages.schedule import stage_dirs
+
+    fit = {d.name: d.key for d in stage_dirs(settings(compose_config(["design=fit"])))}
+    learned = {d.name: d.key for d in stage_dirs(settings(compose_config(["design=learned"])))}
+    assert fit["flow1"] == learned["flow1"] and fit["dm1"] != learned["dm1"]
+    plain = settings(compose_config(["design=learned"]))
+    assert plain.model.motion_fit is None and plain.loss.get("fit_residual", 0.0) == 0.0
+    from demon_lab.pipeline.identity import describe_stage
+
+    described = describe_stage(plain, "dm1", {})
+    assert "fit_residual" not in described["loss"] and "motion_fit" not in described["model"]
