@@ -331,15 +331,16 @@ def test_a_profiled_stage_logs_its_loops_largest_parts_and_keeps_its_keys():
 
 
 @pytest.mark.slow
-def test_the_fit_design_trains_every_stage_with_its_motion_fit_and_geometric_residual(tmp_path):
-    """design=fit end to end at the smoke scale: every stage run FINISHED, dm1, dm2 and the iterative
-    stage log the fitted motion's geometric residual among their loss terms, and every pass's motion
-    is a rotation and a unit translation (the fit's)."""
+def test_the_fit_design_trains_every_stage_with_its_flow_refinement_motion_fit_and_geometric_residual(tmp_path):
+    """design=fit end to end at the smoke scale: every stage run FINISHED, flow1r (between flow1 and dm1)
+    trains the flow refinement on its sequence loss, dm1, dm2 and the iterative stage log the fitted
+    motion's geometric residual among their loss terms, and the passes' motions are scored."""
     from demon_lab.app.job import run
 
-    steps = [f"scale.steps.{s}={n}" for s, n in (("flow1", 4), ("dm1", 4), ("flow2", 2), ("dm2", 2), ("iterative", 2),
-                                                 ("refine", 2))]
+    steps = [f"scale.steps.{s}={n}" for s, n in (("flow1", 4), ("flow1r", 4), ("dm1", 4), ("flow2", 2), ("dm2", 2),
+                                                 ("iterative", 2), ("refine", 2))]
     cfg = compose_config([*smoke_overrides(tmp_path), "design=fit", *steps, "threads=1", "iterations=1",
+                          "schedule.stages.flow1r.keep_best=2", "schedule.stages.flow1r.fresh_scenes=0",
                           "schedule.stages.flow1.keep_best=0", "schedule.stages.dm1.keep_best=0",
                           "schedule.stages.iterative.keep_best=0", "schedule.stages.flow1.fresh_scenes=0",
                           "schedule.stages.dm1.fresh_scenes=0"])
@@ -349,7 +350,8 @@ def test_the_fit_design_trains_every_stage_with_its_motion_fit_and_geometric_res
     stages = c.search_runs([c.get_experiment_by_name("default").experiment_id],
                            filter_string=f"tags.`mlflow.parentRunId` = '{result['run_id']}'")
     by_stage = {r.data.tags["demon_lab.stage"]: r for r in stages}
-    assert len(by_stage) == 6 and all(r.info.status == "FINISHED" for r in stages)
+    assert len(by_stage) == 7 and all(r.info.status == "FINISHED" for r in stages)
+    assert [k for k in by_stage["flow1r"].data.metrics if k.endswith("flow2_refined")]
     for stage in ("dm1", "dm2", "iterative"):
         terms = [k for k in by_stage[stage].data.metrics if k.endswith("fit_residual")]
         assert terms and all(math.isfinite(by_stage[stage].data.metrics[k]) for k in terms), (stage, terms)

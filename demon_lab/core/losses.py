@@ -30,6 +30,9 @@ OPTIONAL_WEIGHTS = {"fit_residual": 0.0}
 """Weights a preset may leave out, with the value it then has (added after the presets were written; a
 key leaves a weight at this value out, so older keys hold): ``fit_residual``, the geometric residual of
 the predicted motion (:func:`motion_residual`)."""
+REFINED_FLOW_WEIGHTS = ("flow",)
+REFINED_FLOW_DECAY = 0.8
+"""The weight of each update's flow in :func:`refined_flow_loss` relative to the next one's (RAFT's)."""
 DEPTH_MOTION_WEIGHTS = ("depth", "depth_sig", "normals", "rotation", "translation", "fit_residual")
 REFINE_WEIGHTS = ("refine_depth", "refine_depth_sig", "refine_normals")
 FLOW_SIG_WEIGHTS = ("flow_sig", "flow_conf_sig")
@@ -133,6 +136,20 @@ def depth_motion_loss(inv_depth: torch.Tensor, normals: torch.Tensor, motion: to
         if intrinsics is None:
             raise ValueError("loss.fit_residual: the motion's geometric residual needs the intrinsics")
         terms["fit_residual"] = weights["fit_residual"] * motion_residual(motion, gt["flow2"], intrinsics)
+    return _weighted(terms), terms
+
+
+@float32
+def refined_flow_loss(flows: list[torch.Tensor], gt: Mapping[str, torch.Tensor],
+                      weights: Mapping[str, float]) -> tuple[torch.Tensor, Terms]:
+    """Loss of the flow refinement (``model.flow_refine``): the level-2 endpoint error of each update's
+    flow (:func:`pointwise_l2` against ``gt["flow2"]``, as flow1's), weighted by
+    :data:`REFINED_FLOW_DECAY` to the power of the updates after it (the last weighs 1), times the flow
+    weight (RAFT's sequence loss; the norm per pixel, not its square, so the precise vectors count as
+    much as the far ones)."""
+    n = len(flows)
+    terms: Terms = {"flow2_refined": weights["flow"] * sum(
+        REFINED_FLOW_DECAY ** (n - 1 - k) * pointwise_l2(f, gt["flow2"]) for k, f in enumerate(flows))}
     return _weighted(terms), terms
 
 

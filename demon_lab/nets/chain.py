@@ -30,6 +30,7 @@ from demon_lab.core.execution import float32
 from demon_lab.nets.blocks import VARIANTS, check_correlation, check_size
 from demon_lab.nets.depth_motion_net import DepthMotion, DepthMotionNet
 from demon_lab.nets.flow_net import FlowNet
+from demon_lab.nets.flow_refine import FlowRefine
 from demon_lab.nets.prior import CHOICES as PRIOR_CHOICES
 from demon_lab.nets.prior import DIS_UPSAMPLE, RANSAC_SETTINGS, dis_prior, ransac_motion
 from demon_lab.nets.refine_net import RefineNet
@@ -46,13 +47,20 @@ def _choices(values: tuple) -> str:
 
 
 def check_options(variant: str, width: float, compat: str | None, correlation, priors: dict[str, str | None],
-                  prefix: str = "", motion_fit: int | None = None) -> None:
+                  prefix: str = "", motion_fit: int | None = None, flow_refine: int | None = None) -> None:
     """The rules of the chain's options, one ValueError line naming the option (``prefix`` + its name:
     ``model.`` where a config sets them): the variant and compat, a positive width, the correlation
     front, each prior's choices, ``ransac_prior``'s flow1 prior, the motion fit's steps (a positive
-    integer, without a motion prior: the fit reads the motion itself), and DeMoN's released graph
-    (``compat=demon_original``) with neither a correlation front, nor priors, nor a motion fit."""
+    integer, without a motion prior: the fit reads the motion itself), the flow refinement's updates (a
+    positive integer), and DeMoN's released graph (``compat=demon_original``) with neither a correlation
+    front, nor priors, nor a motion fit, nor a flow refinement."""
     p = prefix
+    if flow_refine is not None:
+        if isinstance(flow_refine, bool) or not isinstance(flow_refine, int) or flow_refine < 1:
+            raise ValueError(f"{p}flow_refine: expected null or a number of updates >= 1, got {flow_refine!r}")
+        if compat == "demon_original":
+            raise ValueError(f"{p}flow_refine: compat=demon_original reproduces DeMoN's released graph, which has no "
+                             f"flow refinement; leave {p}flow_refine null")
     if motion_fit is not None:
         if isinstance(motion_fit, bool) or not isinstance(motion_fit, int) or motion_fit < 1:
             raise ValueError(f"{p}motion_fit: expected null or a number of Gauss-Newton steps >= 1, got {motion_fit!r}")
@@ -212,7 +220,9 @@ class DeMoN(nn.Module):
     at none, instead of the flow itself; or None (not DeMoN's design). ``motion_fit``: the depth-motion
     nets predict a weight per pixel and their motion is the weighted fit to the flow they read, with
     this many Gauss-Newton steps (:func:`demon_lab.core.epipolar.fit_motion`), not their fully
-    connected head's; or None (DeMoN's). ``nets``: nets of one's own for
+    connected head's; or None (DeMoN's). ``flow_refine``: the bootstrap flow is refined on warped
+    features with this many updates (:class:`demon_lab.nets.flow_refine.FlowRefine`, the net
+    ``flow1_refine``, trained in a stage of its own after flow1); or None (DeMoN's). ``nets``: nets of one's own for
     some of the chain's slots (``flow1``, ``dm1``, ``flow2``, ``dm2``, ``refine``; each with the
     slot's signature, :mod:`demon_lab.nets.slots`), in place of DeMoN's."""
 
@@ -220,11 +230,11 @@ class DeMoN(nn.Module):
                  compat: str | None = None, correlation: tuple[int, int] | None = None,
                  flow1_prior: str | None = None, dm1_prior: str | None = None, flow2_prior: str | None = None,
                  dm2_prior: str | None = None, nets: Mapping[str, nn.Module] | None = None,
-                 motion_fit: int | None = None):
+                 motion_fit: int | None = None, flow_refine: int | None = None):
         super().__init__()
         check_options(variant, width, compat, correlation,
                       dict(flow1_prior=flow1_prior, dm1_prior=dm1_prior, flow2_prior=flow2_prior, dm2_prior=dm2_prior),
-                      motion_fit=motion_fit)
+                      motion_fit=motion_fit, flow_refine=flow_refine)
         check_size(*size)
         given = dict(nets or {})
         if set(given) - set(SLOTS):
@@ -245,6 +255,9 @@ class DeMoN(nn.Module):
         for slot in SLOTS:
             setattr(self, ATTRIBUTES[slot], given[slot] if slot in given else own[slot]())
         self.plugins = tuple(slot for slot in SLOTS if slot in given)
+        self.flow_refine = flow_refine
+        if flow_refine:  # (a net only where asked: every other chain's state is as it was)
+            self.flow1_refine = FlowRefine(variant, width, flow_refine)
         with torch.no_grad():
             if self.flow2_prior and "flow2" not in given:  # the correction of the previous flow starts at none
                 for head in (self.flow2.predict_flow5, self.flow2.predict_flow2):
@@ -292,16 +305,24 @@ class DeMoN(nn.Module):
         dm = self.dm1(pair, depth_motion_net_inputs(image2_2, flow, conf, prior, intrinsics, self.compat))
         return replace(dm, motion=dm.motion + prior)
 
-    def flow_net1(self, pair: torch.Tensor, prior_flow: torch.Tensor | None = None
+    def flow_net1(self, pair: torch.Tensor, prior_flow: torch.Tensor | None = None, refine: bool = True
                   ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
-        """The bootstrap flow net: ``(flowconf5, flowconf2)`` as :class:`FlowNet` returns them, and its
+        """The bootstrap flow net: ``(flowconf5, flowconf2)`` as :class:`FlowNet` returns them (with
+        ``flow_refine`` and ``refine``: the level-2 flow refined, :meth:`refine_flow`), and its
         classical prior flow at level 2 (``flow1_prior``; None without one): ``prior_flow`` where the
         caller has it, else computed (:meth:`FlowNet.prior_flow`)."""
         if not self.flow1_prior:
             prior_flow = None
         elif prior_flow is None:
             prior_flow = self.prior_flow(pair)
-        return (*self.flow1(pair, prior2=prior_flow), prior_flow)
+        flowconf5, flowconf2 = self.flow1(pair, prior2=prior_flow)
+        if self.flow_refine and refine:
+            flowconf2 = torch.cat([self.refine_flow(pair, flowconf2[:, :2])[-1], flowconf2[:, 2:]], 1)
+        return flowconf5, flowconf2, prior_flow
+
+    def refine_flow(self, pair: torch.Tensor, flow: torch.Tensor) -> list[torch.Tensor]:
+        """The bootstrap flow at level 2 after each update of the flow refinement (``flow_refine``)."""
+        return self.flow1_refine(pair, flow)
 
     def prior_motion(self, flow: torch.Tensor, intrinsics: torch.Tensor,
                      prior_flow: torch.Tensor | None = None) -> torch.Tensor | None:

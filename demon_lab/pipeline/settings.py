@@ -311,6 +311,20 @@ class ScaleSettings(Section):
     steps: Mapping = setting(Free())
 
 
+def stage_order(schedule: DictConfig) -> tuple[str, ...]:
+    """The order the stages train in: ``schedule.order`` where a config sets it (a design that adds a
+    stage between two others: the stages' mapping keeps the order they were written in, so an added one
+    comes last), else the stages' own order. ``order`` must name each stage once."""
+    stages = tuple(schedule.stages)
+    order = schedule.get("order")
+    if order is None:
+        return stages
+    if not isinstance(order, ListConfig | list) or sorted(map(str, order)) != sorted(stages):
+        raise ConfigError(f"schedule.order: expected each of the stages ({', '.join(stages)}) once, got "
+                          f"{OmegaConf.to_container(order) if isinstance(order, ListConfig) else order!r}")
+    return tuple(map(str, order))
+
+
 @dataclass(frozen=True)
 class ScheduleSettings(Section):
     """``schedule``: the optimiser's settings and the stages (each typed by its kind's
@@ -320,6 +334,8 @@ class ScheduleSettings(Section):
     weight_decay: float = setting(Number(allow_zero=True))
     grad_clip: float = setting(Number())
     until: str = setting(Text())
+    order: Any = setting(Free(), default=None)
+    """(read by :func:`stage_order` into ``stages``)"""
     stages: tuple[str, ...] = ()
 
     def __post_init__(self):
@@ -373,7 +389,7 @@ class JobSettings(Section):
             raise ConfigError(str(e).splitlines()[0]) from None
         model = ModelSpec.of(cfg.model)
         data = DataSettings.of(cfg.data, "data")
-        schedule = ScheduleSettings.of(cfg.schedule, "schedule", stages=tuple(cfg.schedule.stages))
+        schedule = ScheduleSettings.of(cfg.schedule, "schedule", stages=stage_order(cfg.schedule))
         stages = {name: stage_spec(cfg, name) for name in schedule.stages}
         loss = OmegaConf.to_container(cfg.loss, resolve=True)
         try:

@@ -2,16 +2,20 @@
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 from typing import Any, ClassVar
 
 import torch
 
 from demon_lab.core import losses
-from demon_lab.core.losses import FLOW_WEIGHTS
-from demon_lab.nets.chain import ground_truth_inputs
-from demon_lab.pipeline.config import ConfigError, expect_fraction, expect_positive
-from demon_lab.pipeline.kinds.base import StageSpec, without_unstarted_sig
+from demon_lab.core.losses import FLOW_WEIGHTS, REFINED_FLOW_WEIGHTS
+from demon_lab.nets.chain import DeMoN, ground_truth_inputs
+from demon_lab.pipeline.config import ConfigError, expect_choice, expect_fraction, expect_positive
+from demon_lab.pipeline.kinds.base import StageSpec, pair_priors, without_unstarted_sig
+
+FLOW_NETS = ("flow1", "flow2", "flow1_refine")
+"""The nets a flow stage trains."""
 
 FLOW1_ONLY = {"layers_first": "trains on 2-D layers", "restarts": "screens restarts"}
 """The options only the bootstrap flow net's stage takes, and what they do."""
@@ -39,7 +43,10 @@ class FlowStage(StageSpec):
     loss_weights: ClassVar[tuple[str, ...]] = FLOW_WEIGHTS
     best_metric: ClassVar[str] = "epe"
     net: str = "flow1"
-    """The net the stage trains: ``flow1`` (bootstrap) or ``flow2`` (iterative)."""
+    """The net the stage trains: ``flow1`` (bootstrap), ``flow2`` (iterative) or ``flow1_refine`` (the
+    refinement of the bootstrap flow, ``model.flow_refine``: its updates' level-2 flows scored against the
+    true flow, the later ones more, :func:`demon_lab.core.losses.refined_flow_loss`; the frozen flow1's
+    flow as its input)."""
     sig_start: float = 0.0
     """The fraction of the stage before its sig terms ramp in (0: DeMoN's; 1: never)."""
     level5_fade: float = 1 / 3
@@ -50,6 +57,8 @@ class FlowStage(StageSpec):
     """``flow1``: ``[k, steps]`` starts screened on the held-apart sets (None: one start)."""
 
     def weight_keys(self) -> tuple[str, ...]:
+        if self.net == "flow1_refine":
+            return REFINED_FLOW_WEIGHTS
         return without_unstarted_sig(self.loss_weights, self.sig_start)
 
     def curriculum(self) -> dict[str, Any]:
@@ -58,6 +67,9 @@ class FlowStage(StageSpec):
     def loss(self, stage, batch, gt):
         chain = stage.chain
         pair, image2_2, K = stage.inputs(batch)
+        if self.net == "flow1_refine":
+            flow, = stage.frozen(functools.partial(_unrefined_flow, chain), pair, *pair_priors(batch))
+            return losses.refined_flow_loss(chain.refine_flow(pair, flow), gt, stage.weights)
         if self.net == "flow1":
             prior2 = batch.get("prior_flow")  # computed once per pair where the data carries it
             if chain.flow1_prior and prior2 is None:
@@ -79,6 +91,7 @@ class FlowStage(StageSpec):
         expect_fraction(key + "sig_start", values["sig_start"], note=" (1: never)")
         expect_positive(key + "level5_fade", values["level5_fade"])
         net = values["net"]
+        expect_choice(key + "net", net, FLOW_NETS)
         for option, what in FLOW1_ONLY.items():
             if values.get(option) is not None and net != "flow1":
                 raise ConfigError(f"{key}{option}: only the bootstrap flow net's stage (flow1) {what} "
@@ -94,3 +107,8 @@ class FlowStage(StageSpec):
             if not pair or not (restarts[0] >= 1 and 1 <= restarts[1] < values["steps"]):
                 raise ConfigError(f"{key}restarts: expected [starts, steps]: starts >= 1, each trained 1 <= steps "
                                   f"< the stage's {values['steps']} steps, got {restarts!r}")
+
+
+def _unrefined_flow(chain: DeMoN, pair, prior_flow=None, prior_motion=None):
+    """The frozen flow1's level-2 flow, before the refinement (on the classical prior the batch carries)."""
+    return (chain.flow_net1(pair, prior_flow, refine=False)[1][:, :2],)

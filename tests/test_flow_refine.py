@@ -1,0 +1,92 @@
+"""The refinement of the bootstrap flow on warped features (model.flow_refine), its stage and the
+schedule's order."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from demon_lab.core import losses
+from demon_lab.nets.chain import DeMoN, ground_truth_inputs
+from demon_lab.nets.flow_refine import FlowRefine
+from demon_lab.pipeline.config import ConfigError
+
+
+def _batch(seeds=(0, 1, 2, 3), size=(64, 96)):
+    from demon_lab.data import synthetic
+
+    samples = [synthetic.render_pair("synthetic_scenes11", s, size, supersample=1) for s in seeds]
+    batch = {k: torch.stack([torch.as_tensor(s[k]).float() for s in samples])
+             for k in ("image1", "image2", "intrinsics", "inv_depth", "motion")}
+    if batch["inv_depth"].dim() == 3:
+        batch["inv_depth"] = batch["inv_depth"][:, None]
+    return batch
+
+
+def test_the_untrained_refinement_returns_the_flow_it_is_given_and_the_chain_reads_the_refined_flow():
+    batch = _batch(seeds=(0,))
+    pair = torch.cat([batch["image1"], batch["image2"]], 1)
+    flow = 0.01 * torch.randn(1, 2, 16, 24)
+    refined = FlowRefine("v1", 0.25, iterations=2)(pair, flow)
+    assert len(refined) == 2 and all(torch.equal(f, flow) for f in refined)
+    chain = DeMoN("v1", 0.25, (64, 96), flow_refine=2)
+    with torch.no_grad():
+        chain.flow1_refine.delta.conv.bias.fill_(0.5)  # a refinement that moves every vector half a level-2 pixel
+        raw = chain.flow_net1(pair, refine=False)[1][:, :2]
+        out = chain(batch["image1"], batch["image2"], batch["intrinsics"], iterations=0, refine=False)
+    torch.testing.assert_close(out.passes[0].flow, raw + 2 * 0.5 / torch.tensor([24.0, 16.0]).view(1, 2, 1, 1))
+    assert "flow1_refine" not in dict(DeMoN("v1", 0.25, (64, 96)).named_children())
+
+
+def test_the_refinement_learns_to_correct_a_flow_that_is_off_by_a_pixel():
+    """Trained on four rendered pairs fed their true level-2 flow moved by 1.5 px, the refinement's
+    flow ends far closer to the truth than the flow it is given (its loss reaches the features'
+    correlation through the warp)."""
+    torch.manual_seed(0)
+    batch = _batch()
+    pair = torch.cat([batch["image1"], batch["image2"]], 1)
+    truth = ground_truth_inputs(batch, batch["intrinsics"]).flow
+    h, w = truth.shape[2:]
+    given = torch.nan_to_num(truth) + torch.tensor([1.5 / w, -1.5 / h]).view(1, 2, 1, 1)
+    net = FlowRefine("v1", 0.5, iterations=2)
+    optimiser = torch.optim.Adam(net.parameters(), lr=2e-3)
+    gt = {"flow2": truth}
+    before = float(losses.pointwise_l2(given, truth))
+    for _ in range(150):
+        optimiser.zero_grad()
+        loss, _ = losses.refined_flow_loss(net(pair, given), gt, {"flow": 1.0})
+        loss.backward()
+        optimiser.step()
+    with torch.no_grad():
+        after = float(losses.pointwise_l2(net(pair, given)[-1], truth))
+    assert after < 0.5 * before, (before, after)
+
+
+def test_the_options_and_the_order_of_the_stages_are_checked():
+    from jobs import compose_config
+
+    from demon_lab.pipeline.settings import JobSettings
+
+    with pytest.raises(ValueError, match="flow_refine: expected null or a number of updates >= 1"):
+        DeMoN("v1", 0.25, (64, 96), flow_refine=0)
+    with pytest.raises(ConfigError, match=r"schedule\.order: expected each of the stages"):
+        JobSettings.of(compose_config(["design=fit", "schedule.order=[flow1,dm1]"]))
+    with pytest.raises(ConfigError, match=r"schedule\.stages\.flow1r\.net: expected one of"):
+        JobSettings.of(compose_config(["design=fit", "schedule.stages.flow1r.net=flow3"]))
+
+
+def test_the_refinement_stage_trains_between_flow1_and_dm1_and_keys_them_so():
+    """design=fit: flow1r after flow1 and before dm1 (schedule.order); flow1 is the learned design's,
+    dm1's key holds flow1r's; the refinement's stage reads only the flow weight."""
+    from jobs import compose_config, settings
+
+    from demon_lab.pipeline.stages.schedule import stage_dirs
+
+    job = settings(compose_config(["design=fit"]))
+    assert job.schedule.stages[:3] == ("flow1", "flow1r", "dm1")
+    dirs = {d.name: d for d in stage_dirs(job)}
+    learned = {d.name: d.key for d in stage_dirs(settings(compose_config(["design=learned"])))}
+    assert dirs["flow1"].key == learned["flow1"]
+    assert dirs["dm1"].description["upstream"] == {"flow1": dirs["flow1"].key, "flow1r": dirs["flow1r"].key}
+    assert dirs["flow1r"].description["loss"] == {"flow": job.loss["flow"]}
+    assert job.stages["flow1r"].trained_nets() == ("flow1_refine",)
