@@ -90,3 +90,28 @@ def test_the_refinement_stage_trains_between_flow1_and_dm1_and_keys_them_so():
     assert dirs["dm1"].description["upstream"] == {"flow1": dirs["flow1"].key, "flow1r": dirs["flow1r"].key}
     assert dirs["flow1r"].description["loss"] == {"flow": job.loss["flow"]}
     assert job.stages["flow1r"].trained_nets() == ("flow1_refine",)
+
+
+def test_a_joint_dm1_stage_trains_the_refinement_with_dm1_and_its_motion_loss_reaches_it(tmp_path):
+    """schedule.stages.dm1.joint=true (design=fit): dm1's stage trains flow1_refine too, its key holds
+    the flow weight beside dm1's, and after its steps the refinement's weights differ from flow1r's."""
+    from jobs import compose_config, settings, smoke_overrides
+
+    from demon_lab.app.job import run
+    from demon_lab.pipeline.stages.schedule import stage_dirs
+
+    steps = [f"scale.steps.{s}={n}" for s, n in (("flow1", 2), ("flow1r", 2), ("dm1", 3))]
+    overrides = [*smoke_overrides(tmp_path), "design=fit", *steps, "threads=1", "schedule.until=dm1", "iterations=0",
+                 "+schedule.stages.dm1.joint=true", "schedule.stages.dm1.gt_flow_warmup=0",
+                 *(f"schedule.stages.{s}.{o}=0" for s in ("flow1", "flow1r", "dm1")
+                   for o in ("keep_best", "fresh_scenes"))]
+    job = settings(compose_config(overrides))
+    assert job.stages["dm1"].trained_nets() == ("dm1", "flow1_refine")
+    dirs = {d.name: d for d in stage_dirs(job)}
+    assert dirs["dm1"].description["loss"]["flow"] == job.loss["flow"]
+    assert run(compose_config(overrides))["status"] == "finished"
+    refined, joint = dirs["flow1r"].load()["flow1_refine"], dirs["dm1"].load()
+    assert set(joint) == {"dm1", "flow1_refine"}
+    assert any(not torch.equal(refined[k], joint["flow1_refine"][k]) for k in refined)
+    with pytest.raises(ConfigError, match="joint: only dm1"):
+        settings(compose_config(["design=fit", "+schedule.stages.dm2.joint=true"]))

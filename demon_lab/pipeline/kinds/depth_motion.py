@@ -9,9 +9,9 @@ from typing import Any, ClassVar
 import torch
 
 from demon_lab.core import losses
-from demon_lab.core.losses import DEPTH_MOTION_WEIGHTS
+from demon_lab.core.losses import DEPTH_MOTION_WEIGHTS, REFINED_FLOW_WEIGHTS
 from demon_lab.nets.chain import DeMoN, Prediction, ground_truth_inputs
-from demon_lab.pipeline.config import expect_fraction
+from demon_lab.pipeline.config import ConfigError, expect_flag, expect_fraction
 from demon_lab.pipeline.kinds.base import StageSpec, pair_priors, prediction_fields
 
 
@@ -25,6 +25,11 @@ class DepthMotionStage(StageSpec):
     ``gt_flow_warmup`` (a fraction of the stage, default 0 as DeMoN) feeds ground-truth flow, as the
     oracle does, for that first part of the stage, and the flow net's from then on: the net learns to
     read motion from a flow that shows it before it meets the flow it will be given.
+
+    ``joint`` (``dm1`` of a chain with ``model.flow_refine``; default off) fine-tunes the flow refinement
+    with dm1: dm1 reads the refined flow with its gradient, so the motion's losses (through
+    ``model.motion_fit``, the fitted motion's) reach the refinement, whose own sequence loss stays beside
+    them (not DeMoN's, whose stages train one net on the frozen flow).
     """
 
     kind: ClassVar[str] = "depth_motion"
@@ -36,17 +41,37 @@ class DepthMotionStage(StageSpec):
     """The net the stage trains: ``dm1`` (bootstrap) or ``dm2`` (iterative)."""
     gt_flow_warmup: float = 0.0
     """The first fraction of the stage fed ground-truth flow (0: none, as DeMoN)."""
+    joint: bool = False
+    """``dm1``: train the flow refinement (``flow1_refine``) with it (False: dm1 alone, as DeMoN)."""
 
     @classmethod
     def check(cls, name: str, values: dict[str, Any]) -> None:
         super().check(name, values)
         expect_fraction(f"schedule.stages.{name}.gt_flow_warmup", values["gt_flow_warmup"])
+        expect_flag(f"schedule.stages.{name}.joint", values["joint"])
+        if values["joint"] and values["net"] != "dm1":
+            raise ConfigError(f"schedule.stages.{name}.joint: only dm1 is fine-tuned jointly with the flow "
+                              f"refinement (this stage's net: {values['net']})")
+
+    def trained_nets(self) -> tuple[str, ...]:
+        return ("dm1", "flow1_refine") if self.joint else (self.net,)
+
+    def weight_keys(self) -> tuple[str, ...]:
+        return (*self.loss_weights, *REFINED_FLOW_WEIGHTS) if self.joint else self.loss_weights
 
     def loss(self, stage, batch, gt):
         chain = stage.chain
         pair, image2_2, K = stage.inputs(batch)
         given = self.oracle == "flow" or stage.global_step < self.gt_flow_warmup * self.steps
         prior = None  # dm1's prior motion where the memo has it
+        if self.joint and not given:
+            flow, conf = stage.frozen(functools.partial(_unrefined_flow_and_conf, chain), pair, *pair_priors(batch))
+            flows = chain.refine_flow(pair, flow)
+            flow_total, flow_terms = losses.refined_flow_loss(flows, gt, stage.weights)
+            dm = chain.depth_motion1(pair, image2_2, flows[-1], conf, K)
+            total, terms = losses.depth_motion_loss(dm.inv_depth, dm.normals, dm.motion, gt, stage.weights,
+                                                    ramp=stage.ramp(2.0), intrinsics=K)
+            return total + flow_total, {**terms, **flow_terms}
         if self.net == "dm1" and not given:
             flow, conf, *prior = stage.frozen(functools.partial(_bootstrap_flow, chain), pair, K, *pair_priors(batch))
             prior = prior[0] if prior else None
@@ -65,6 +90,11 @@ class DepthMotionStage(StageSpec):
         ramp = stage.ramp(2.0 if self.net == "dm1" else 1.0)
         return losses.depth_motion_loss(dm.inv_depth, dm.normals, dm.motion, gt, stage.weights, ramp=ramp,
                                         intrinsics=K)
+
+
+def _unrefined_flow_and_conf(chain: DeMoN, pair, prior_flow=None, prior_motion=None):
+    """The frozen flow1's level-2 flow before the refinement, and its confidence."""
+    return _flow_and_conf(chain.flow_net1(pair, prior_flow, refine=False)[1])
 
 
 def _bootstrap_flow(chain: DeMoN, pair, K, prior_flow=None, prior_motion=None):
