@@ -66,7 +66,7 @@ def test_a_data_config_without_held_apart_sets_validates(tmp_path):
     (["+schedule.stages.flow1.restarts=[3,0]"], "schedule.stages.flow1.restarts: expected [starts, steps]"),
     (["+schedule.stages.dm1.sig_start=0.5"],
      "schedule.stages.dm1.sig_start: not an option of a depth_motion stage (its options: kind, steps, lr, "
-     "warmup_steps, batch_size, oracle, easy_first, fresh_scenes, keep_best, net, gt_flow_warmup)"),
+     "warmup_steps, batch_size, oracle, easy_first, fresh_scenes, keep_best, net, gt_flow_warmup, joint)"),
     (["+schedule.stages.flow1.fresh_scenes=2"],
      "schedule.stages.flow1.fresh_scenes: expected new scenes per training draw in [0, 1], got 2"),
     (["+schedule.stages.dm1.fresh_scenes=0.1", "+schedule.stages.dm1.easy_first=[0.5,0.5]"],

@@ -136,3 +136,25 @@ def test_the_fit_design_shares_the_learned_designs_flow1_and_leaves_every_other_
 
     described = describe_stage(plain, "dm1", {})
     assert "fit_residual" not in described["loss"] and "motion_fit" not in described["model"]
+
+
+def test_uniform_fit_weights_fit_every_vector_alike_and_need_the_fit():
+    """model.fit_weights=uniform: the motion fit ignores the net's weights (here far from uniform), so
+    the uniform row measures what the learned weights add."""
+    batch = _pairs(seeds=(0,), size=(64, 96))
+    pair = torch.cat([batch["image1"], batch["image2"]], 1)
+    flow = batch["flow2"].clone()
+    flow[..., : flow.shape[-1] // 2] += 0.05  # half the vectors far off
+    motions = {}
+    for weights in ("learned", "uniform"):
+        chain = DeMoN("v1", 0.125, (64, 96), motion_fit=3, fit_weights=weights)
+        with torch.no_grad():  # the net's weights vary from pixel to pixel
+            chain.dm1.predict_depth2.out.conv.weight[4].normal_(0, 1)
+            dm = chain.depth_motion1(pair, batch["image2"][:, :, ::4, ::4], flow, torch.ones_like(flow),
+                                     batch["intrinsics"])
+        motions[weights] = dm.motion
+    uniform = fit_motion(flow, torch.ones_like(flow[:, :1]), batch["intrinsics"], 3)
+    torch.testing.assert_close(motions["uniform"], uniform)
+    assert not torch.allclose(motions["learned"], motions["uniform"])
+    with pytest.raises(ValueError, match="fit_weights: uniform weighs the motion fit's vectors; set motion_fit"):
+        DeMoN("v1", 0.125, (64, 96), fit_weights="uniform")

@@ -182,7 +182,8 @@ def test_a_spec_of_one_design_extends_another_and_counts_only_runs_of_its_design
     assert provenance.shipped({}) == "profile" and provenance.shipped(designs["learned"]) == "learned"
     assert report.study_of("study", tmp_path, design="profile") == report.study_of("study", tmp_path) == "study"
     (tmp_path / "bad.yaml").write_text(yaml.safe_dump({"extends": "study", "design": "fast"}))
-    with pytest.raises(report.ReportError, match="design: expected one of \\['fit', 'learned', 'profile'\\], got 'fast'"):
+    with pytest.raises(report.ReportError,
+                       match="design: expected one of \\['fit', 'learned', 'profile'\\], got 'fast'"):
         report.load_spec("bad", tmp_path)
     (tmp_path / "bad.yaml").write_text(yaml.safe_dump({"extends": "study", "drop_rows": ["row z"]}))
     with pytest.raises(report.ReportError, match="drop_rows: \\['row z'\\] are rows of no table of study"):

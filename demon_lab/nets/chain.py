@@ -37,6 +37,9 @@ from demon_lab.nets.refine_net import RefineNet
 from demon_lab.nets.slots import ATTRIBUTES, SLOTS
 
 ORACLES = (None, "flow", "depth_motion")
+FIT_WEIGHTS = ("learned", "uniform")
+"""``DeMoN(fit_weights=...)``: the motion fit's per-pixel weights, the depth-motion net's (``learned``) or
+all equal (``uniform``: what the learned weights add is the difference)."""
 COMPATS = (None, "demon_original")
 """``DeMoN(compat=...)``: None (demon_lab's inputs, docs/reference.md §11) or DeMoN's released graph exactly."""
 
@@ -47,7 +50,8 @@ def _choices(values: tuple) -> str:
 
 
 def check_options(variant: str, width: float, compat: str | None, correlation, priors: dict[str, str | None],
-                  prefix: str = "", motion_fit: int | None = None, flow_refine: int | None = None) -> None:
+                  prefix: str = "", motion_fit: int | None = None, flow_refine: int | None = None,
+                  fit_weights: str = "learned") -> None:
     """The rules of the chain's options, one ValueError line naming the option (``prefix`` + its name:
     ``model.`` where a config sets them): the variant and compat, a positive width, the correlation
     front, each prior's choices, ``ransac_prior``'s flow1 prior, the motion fit's steps (a positive
@@ -55,6 +59,10 @@ def check_options(variant: str, width: float, compat: str | None, correlation, p
     positive integer), and DeMoN's released graph (``compat=demon_original``) with neither a correlation
     front, nor priors, nor a motion fit, nor a flow refinement."""
     p = prefix
+    if fit_weights not in FIT_WEIGHTS:
+        raise ValueError(f"{p}fit_weights: expected one of {_choices(FIT_WEIGHTS)}, got {fit_weights!r}")
+    if fit_weights != "learned" and motion_fit is None:
+        raise ValueError(f"{p}fit_weights: {fit_weights} weighs the motion fit's vectors; set {p}motion_fit")
     if flow_refine is not None:
         if isinstance(flow_refine, bool) or not isinstance(flow_refine, int) or flow_refine < 1:
             raise ValueError(f"{p}flow_refine: expected null or a number of updates >= 1, got {flow_refine!r}")
@@ -220,9 +228,10 @@ class DeMoN(nn.Module):
     at none, instead of the flow itself; or None (not DeMoN's design). ``motion_fit``: the depth-motion
     nets predict a weight per pixel and their motion is the weighted fit to the flow they read, with
     this many Gauss-Newton steps (:func:`demon_lab.core.epipolar.fit_motion`), not their fully
-    connected head's; or None (DeMoN's). ``flow_refine``: the bootstrap flow is refined on warped
-    features with this many updates (:class:`demon_lab.nets.flow_refine.FlowRefine`, the net
-    ``flow1_refine``, trained in a stage of its own after flow1); or None (DeMoN's). ``nets``: nets of one's own for
+    connected head's; or None (DeMoN's); ``fit_weights``: :data:`FIT_WEIGHTS`. ``flow_refine``: the
+    bootstrap flow is refined on warped features with this many updates
+    (:class:`demon_lab.nets.flow_refine.FlowRefine`, the net ``flow1_refine``, trained in a stage of its
+    own after flow1); or None (DeMoN's). ``nets``: nets of one's own for
     some of the chain's slots (``flow1``, ``dm1``, ``flow2``, ``dm2``, ``refine``; each with the
     slot's signature, :mod:`demon_lab.nets.slots`), in place of DeMoN's."""
 
@@ -230,11 +239,11 @@ class DeMoN(nn.Module):
                  compat: str | None = None, correlation: tuple[int, int] | None = None,
                  flow1_prior: str | None = None, dm1_prior: str | None = None, flow2_prior: str | None = None,
                  dm2_prior: str | None = None, nets: Mapping[str, nn.Module] | None = None,
-                 motion_fit: int | None = None, flow_refine: int | None = None):
+                 motion_fit: int | None = None, flow_refine: int | None = None, fit_weights: str = "learned"):
         super().__init__()
         check_options(variant, width, compat, correlation,
                       dict(flow1_prior=flow1_prior, dm1_prior=dm1_prior, flow2_prior=flow2_prior, dm2_prior=dm2_prior),
-                      motion_fit=motion_fit, flow_refine=flow_refine)
+                      motion_fit=motion_fit, flow_refine=flow_refine, fit_weights=fit_weights)
         check_size(*size)
         given = dict(nets or {})
         if set(given) - set(SLOTS):
@@ -243,7 +252,7 @@ class DeMoN(nn.Module):
         self.correlation = None if correlation is None else check_correlation(correlation)
         self.flow1_prior, self.dm1_prior = flow1_prior, dm1_prior
         self.flow2_prior, self.dm2_prior = flow2_prior, dm2_prior
-        self.motion_fit = motion_fit
+        self.motion_fit, self.fit_weights = motion_fit, fit_weights
         kw = dict(variant=variant, width=width, size=self.size)
         fit = dict(fit=True) if motion_fit else {}
         own = {  # DeMoN's net of each slot that none is given for
@@ -349,6 +358,8 @@ class DeMoN(nn.Module):
         the weights it predicts (:func:`demon_lab.core.epipolar.fit_motion`); without: ``dm`` as it is."""
         if not self.motion_fit:
             return dm
+        if self.fit_weights == "uniform":
+            return replace(dm, motion=fit_motion(flow, torch.ones_like(flow[:, :1]), intrinsics, self.motion_fit))
         if dm.weights is None:
             raise ValueError(f"model.motion_fit: the {slot} net returns no per-pixel weights (DepthMotion.weights) "
                              f"for the motion fit")

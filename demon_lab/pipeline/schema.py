@@ -40,6 +40,7 @@ class ModelSpec:
     dm2_prior: str | None
     motion_fit: int | None
     flow_refine: int | None
+    fit_weights: str
     channels_last: bool
     compile: bool
     weights: str | None
@@ -60,7 +61,7 @@ class ModelSpec:
         try:
             check_options(values["variant"], values["width"], values["compat"], values["correlation"],
                           {k: values[k] for k in PRIOR_KEYS}, prefix="model.", motion_fit=values["motion_fit"],
-                          flow_refine=values["flow_refine"])
+                          flow_refine=values["flow_refine"], fit_weights=values["fit_weights"])
             if not isinstance(nets, dict):
                 raise ValueError(f"model.nets: expected a mapping of slots to nets, got {nets!r}")
             for slot, node in nets.items():
@@ -82,7 +83,8 @@ class ModelSpec:
     def net_options(self) -> dict[str, str | int | None]:
         """The options that decide the chain's nets beside variant, width and correlation, as the chain
         takes them (keyword arguments): the priors, the motion fit and the flow refinement."""
-        return {**self.priors(), "motion_fit": self.motion_fit, "flow_refine": self.flow_refine}
+        return {**self.priors(), "motion_fit": self.motion_fit, "flow_refine": self.flow_refine,
+                "fit_weights": self.fit_weights}
 
     def plugins(self) -> dict[str, Any]:
         """The nets of one's own, built from their configs (``nets``), by slot: the class its

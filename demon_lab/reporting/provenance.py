@@ -30,7 +30,8 @@ from demon_lab.reporting.archive import IMPORTED_FROM
 from demon_lab.reporting.tables import markdown_table
 
 DEMON = "DeMoN's design"
-DEPARTURE_MODEL_KEYS = tuple(f"model.{k}" for k in (*PRIOR_KEYS, "correlation", "motion_fit", "flow_refine"))
+DEPARTURE_MODEL_KEYS = tuple(f"model.{k}" for k in (*PRIOR_KEYS, "correlation", "motion_fit", "fit_weights",
+                                                     "flow_refine"))
 """The model options that depart from DeMoN's nets where set."""
 DEPARTURE_LOSS_KEYS = ("loss.fit_residual",)
 """The loss weights that depart from DeMoN's losses where set (and not 0)."""
@@ -38,6 +39,8 @@ DEPARTURE_STAGE_OPTION = re.compile(
     r"schedule\.stages\.\w+\.(layers_first|restarts|easy_first|level5_fade|gt_flow_warmup|fresh_scenes|keep_best|joint)$")
 """The stage options a stage of DeMoN's schedule leaves out, which depart from it where set."""
 OFF = ("None", "nan", "0", "0.0", "")
+OFF_BY_KEY = {"model.fit_weights": "learned"}
+"""A departure's own off value beside :data:`OFF` (the motion fit's weights are the nets' unless uniform)."""
 NAMED = {"the cpu profile": ["scale=cpu"], "the learned design": ["scale=cpu", "design=learned"],
          "the fit design": ["scale=cpu", "design=fit"]}
 """The designs the project ships at the cpu scale, as the overrides that compose them."""
@@ -56,13 +59,13 @@ class DesignMixError(ValueError):
 
 def departures(params: Mapping[str, Any]) -> dict[str, str]:
     """A run's departures from DeMoN's design: its params (dotted keys, string values) that
-    :data:`DEPARTURE_MODEL_KEYS`, :data:`DEPARTURE_LOSS_KEYS` or :data:`DEPARTURE_STAGE_OPTION` name, and a net of its own
-    (``model.nets.SLOT._target_`` and its arguments), where not off."""
+    :data:`DEPARTURE_MODEL_KEYS`, :data:`DEPARTURE_LOSS_KEYS` or :data:`DEPARTURE_STAGE_OPTION` name, and a
+    net of its own (``model.nets.SLOT._target_`` and its arguments), where not off."""
     out = {}
     for key, value in params.items():
         departs = (key in DEPARTURE_MODEL_KEYS or key in DEPARTURE_LOSS_KEYS or DEPARTURE_STAGE_OPTION.match(key)
                    or key.startswith("model.nets."))
-        if departs and str(value) not in OFF:
+        if departs and str(value) not in OFF and str(value) != OFF_BY_KEY.get(key):
             out[key] = str(value)
     return dict(sorted(out.items()))
 
