@@ -125,3 +125,19 @@ def test_a_reader_whose_solver_aborts_draws_again_and_fails_in_one_line_if_it_ke
         ceiling.read_motion(truth, K, "lmeds")
     out = ceiling.ceiling(sample["flow"], sample["flow"], sample)
     assert out["lmeds/n_failed"] == 1.0 and out["ransac/n_failed"] == 1.0
+
+
+def test_distances_count_in_pixels_of_the_input_image():
+    """A level-2 flow (a grid pixel is 4 input pixels): a vector half a grid pixel off is 2 input
+    pixels off, within 2 px and not within 1 px, and the oracle's pick of the vectors within 1 px
+    keeps none of them."""
+    truth = np.zeros((4, 4, 2))
+    flow = truth + np.array([0.5, 0.0])
+    assert ceiling.precision(flow, truth, image_px=4.0) == {"within_1px": 0.0, "within_2px": 1.0, "within_4px": 1.0,
+                                                            "median_px": 2.0}
+    sample = _pair()
+    K = pixel_intrinsics(sample["intrinsics"], *sample["flow"].shape[1:])
+    exact = ceiling.pixel_flow(sample["flow"], sample)
+    with pytest.raises(BaselineFailure, match="0 vectors"):
+        ceiling.read_motion(exact + 0.5, K, "pick1", exact, image_px=4.0)
+    assert np.isfinite(ceiling.read_motion(exact + 0.1, K, "pick1", exact, image_px=4.0)).all()

@@ -1,10 +1,11 @@
 """How much camera motion a flow field carries, and how much each way of reading it loses.
 
 For a pair's flow field (a net's flow at level 2, or the ground truth), in pixels of the flow's own
-grid with view 2's end points in view 1's camera:
+grid with view 2's end points in view 1's camera, its distances from the truth measured in pixels of
+the input image (``image_px`` of them to a pixel of the flow's grid: 4 at level 2):
 
 - :func:`precision`: the share of its vectors within 1, 2 and 4 pixels of the ground truth
-  (:data:`PIXELS`; over the vectors whose truth is finite);
+  (:data:`PIXELS`; over the vectors whose truth is finite), and their median distance;
 - :func:`read_motion`: the camera motion read from it by one of :data:`READERS`:
 
   - ``ransac``: Nister's 5-point algorithm in RANSAC on all its vectors, as Base-Mat-F reads the
@@ -58,11 +59,13 @@ def pixel_flow(flow: np.ndarray, sample: Mapping[str, Any]) -> np.ndarray:
     return px if moved is end else moved - grid
 
 
-def precision(flow_px: np.ndarray, truth_px: np.ndarray, pixels: tuple[int, ...] = PIXELS) -> dict[str, float]:
+def precision(flow_px: np.ndarray, truth_px: np.ndarray, pixels: tuple[int, ...] = PIXELS,
+              image_px: float = 1.0) -> dict[str, float]:
     """``within_Npx``: the share of the vectors with a finite truth whose end point lies within N pixels
     of the truth's, for each N of ``pixels``, and ``median_px``: the median of their distances (a vector
-    the flow does not give is infinitely far; NaN where no vector has a finite truth)."""
-    error = np.linalg.norm(flow_px - truth_px, axis=-1)
+    the flow does not give is infinitely far; NaN where no vector has a finite truth); distances in
+    pixels of the input, ``image_px`` to one of the flow's grid."""
+    error = np.linalg.norm(flow_px - truth_px, axis=-1) * image_px
     known = np.isfinite(truth_px).all(-1)
     error = np.where(np.isfinite(error), error, np.inf)[known]
     if not error.size:
@@ -71,10 +74,11 @@ def precision(flow_px: np.ndarray, truth_px: np.ndarray, pixels: tuple[int, ...]
 
 
 def read_motion(flow_px: np.ndarray, K: np.ndarray, reader: str, truth_px: np.ndarray | None = None,
-                threshold: float = 1.0, seed: int = 0) -> np.ndarray:
+                threshold: float = 1.0, seed: int = 0, image_px: float = 1.0) -> np.ndarray:
     """The motion ``[r, t]`` (6,), unit t, that ``reader`` (:data:`READERS`) reads from ``flow_px``
     ((h, w, 2) pixels of its grid) with pixel intrinsics ``K``; ``truth_px`` (the ground-truth flow)
-    for the oracle's picks; ``threshold``: the RANSAC threshold in pixels. Raises
+    for the oracle's picks, whose distances count in pixels of the input (``image_px`` to one of the
+    grid); ``threshold``: the RANSAC threshold in pixels of the grid. Raises
     :class:`~demon_lab.baselines.twoview.BaselineFailure` where it finds none."""
     if reader not in READERS:
         raise ValueError(f"reader: expected one of {', '.join(READERS)}, got {reader!r}")
@@ -84,7 +88,7 @@ def read_motion(flow_px: np.ndarray, K: np.ndarray, reader: str, truth_px: np.nd
     if reader.startswith("pick"):
         if truth_px is None:
             raise ValueError(f"reader {reader}: needs the ground-truth flow")
-        error = np.linalg.norm(flow_px - truth_px, axis=-1)
+        error = np.linalg.norm(flow_px - truth_px, axis=-1) * image_px
         use &= np.isfinite(error) & (error <= int(reader.removeprefix("pick")))
     if use.sum() < MIN_VECTORS:
         raise BaselineFailure(f"{int(use.sum())} vectors to read the motion from (needs {MIN_VECTORS})")
@@ -96,18 +100,22 @@ def read_motion(flow_px: np.ndarray, K: np.ndarray, reader: str, truth_px: np.nd
 
 
 def ceiling(flow: np.ndarray, truth: np.ndarray, sample: Mapping[str, Any], seed: int = 0,
-            ransac_threshold_px: float = 1.0) -> dict[str, float]:
+            ransac_threshold_px: float = 1.0, image_width: int | None = None) -> dict[str, float]:
     """For one sample: the precision of ``flow`` against ``truth`` (both (2, h, w), normalised, on one
     grid) and, per reader, the rotation and translation errors of the motion it reads from ``flow``
     (``READER/rot_deg``, ``READER/tran_deg``; NaN, and ``READER/n_failed`` 1, where it reads none).
-    ``ransac_threshold_px``: at 256 pixels of width, scaled to the flow's (as the baselines' is)."""
+    ``ransac_threshold_px``: at 256 pixels of width, scaled to the flow's (as the baselines' is);
+    ``image_width``: the input's width, whose pixels the distances from the truth count in (None: the
+    flow's own grid)."""
     flow_px, truth_px = pixel_flow(flow, sample), pixel_flow(truth, sample)
     h, w = flow_px.shape[:2]
+    image_px = 1.0 if image_width is None else image_width / w
     K = pixel_intrinsics(sample["intrinsics"], h, w)
-    out = precision(flow_px, truth_px)
+    out = precision(flow_px, truth_px, image_px=image_px)
     for reader in READERS:
         try:
-            motion = read_motion(flow_px, K, reader, truth_px, scaled_threshold(ransac_threshold_px, w), seed)
+            motion = read_motion(flow_px, K, reader, truth_px, scaled_threshold(ransac_threshold_px, w), seed,
+                                 image_px)
             errors, failed = motion_errors(motion, np.asarray(sample["motion"], dtype=np.float64)), 0.0
         except BaselineFailure:
             errors, failed = {"rot_deg": float("nan"), "tran_deg": float("nan")}, 1.0

@@ -444,7 +444,7 @@ COLUMNS: dict[str, Column] = {c.key: c for c in (
     Column("within_1px", "<=1px", "≤ 1 px", r"$\leq$ 1 px", None, "share of flow vectors"),
     Column("within_2px", "<=2px", "≤ 2 px", r"$\leq$ 2 px", None, "share of flow vectors"),
     Column("within_4px", "<=4px", "≤ 4 px", r"$\leq$ 4 px", None, "share of flow vectors"),
-    Column("median_px", "median px", "median error (px)", "median error (px)", None, "pixels of the flow's grid"),
+    Column("median_px", "median px", "median error (px)", "median error (px)", None, "pixels of the input image"),
     Column("nonpositive_depth", "inv<=0", "share of inverse depth <= 0", r"inverse depth $\leq 0$"),
 )}
 UNITS_NOTE = "depth metrics on unit-baseline depth, rot/tran in degrees, EPE in normalised flow units"

@@ -161,7 +161,8 @@ def evaluate_test_sets(job: JobSettings, chain: DeMoN | None, refined: bool) -> 
 def flow_ceiling(chain: DeMoN, dataset, job: JobSettings) -> dict[str, float]:
     """``eval.ceiling``: how much camera motion the bootstrap pass's flow (flow1's, at level 2; the
     ground truth's under ``oracle=flow``) carries on ``dataset``, and how much each reader of it loses
-    (:func:`demon_lab.baselines.ceiling.ceiling`, against the ground-truth flow at the flow's grid):
+    (:func:`demon_lab.baselines.ceiling.ceiling`, against the ground-truth flow at the flow's grid, its
+    distances in pixels of the input image):
     means over the pairs with a known motion (``ceiling/within_1px``, ``ceiling/ransac/tran_deg``, ...;
     ``ceiling/READER/n_failed``: the pairs a reader read no motion from)."""
     import numpy as np
@@ -182,7 +183,8 @@ def flow_ceiling(chain: DeMoN, dataset, job: JobSettings) -> dict[str, float]:
             flow = out.passes[0].flow[i].double().cpu().numpy()
             gt_flow = metrics.resize_nearest(np.asarray(truth["flow"], dtype=np.float64), flow.shape[1:])
             cameras = {k: sample[k].double().numpy() for k in ("intrinsics", "intrinsics2") if k in sample}
-            rows.append(ceiling(flow, gt_flow, {**cameras, "motion": motion}, seed=job.baseline.seed))
+            rows.append(ceiling(flow, gt_flow, {**cameras, "motion": motion}, seed=job.baseline.seed,
+                                image_width=int(job.data.size[1])))
     if not rows:
         return {}
     out = {}
