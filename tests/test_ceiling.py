@@ -89,6 +89,11 @@ def test_a_job_with_eval_ceiling_scores_the_bootstrap_flow_of_each_test_set_and_
             assert 0 <= s[f"ceiling/{reader}/n_failed"] <= 2 and f"ceiling/{reader}/tran_deg" in s, (r.name, reader)
     plain = settings(compose_config(base))
     assert not any(k.startswith("ceiling/") for k in evaluate_test_sets(plain, chain, refined=False)[0].summary)
+    # under oracle=flow the flow dm1 reads is the truth's at level 2, not the untrained flow1's
+    untrained = {r.name: r.summary["ceiling/within_1px"] for r in results}
+    oracle = settings(compose_config([*base, "eval.ceiling=true", "oracle=flow"]))
+    for r in evaluate_test_sets(oracle, chain, refined=False):
+        assert r.summary["ceiling/within_4px"] > 0.9 and r.summary["ceiling/within_1px"] > untrained[r.name], r.name
     assert run_key(plain) == run_key(settings(compose_config([*base, "eval.ceiling=false"]))) != run_key(job)
 
 

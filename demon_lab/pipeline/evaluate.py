@@ -24,7 +24,7 @@ import torch
 from torch.utils.data import DataLoader
 
 from demon_lab.core import execution, metrics, scoring
-from demon_lab.nets.chain import ChainOutput, DeMoN
+from demon_lab.nets.chain import ChainOutput, DeMoN, ground_truth_inputs
 from demon_lab.pipeline.methods import method
 from demon_lab.pipeline.settings import JobSettings
 
@@ -159,8 +159,9 @@ def evaluate_test_sets(job: JobSettings, chain: DeMoN | None, refined: bool) -> 
 
 
 def flow_ceiling(chain: DeMoN, dataset, job: JobSettings) -> dict[str, float]:
-    """``eval.ceiling``: how much camera motion the bootstrap pass's flow (flow1's, at level 2; the
-    ground truth's under ``oracle=flow``) carries on ``dataset``, and how much each reader of it loses
+    """``eval.ceiling``: how much camera motion the flow dm1 reads in the bootstrap pass (flow1's, at
+    level 2; under ``oracle=flow`` the ground truth at level 2, as dm1 is fed it) carries on ``dataset``,
+    and how much each reader of it loses
     (:func:`demon_lab.baselines.ceiling.ceiling`, against the ground-truth flow at the flow's grid, its
     distances in pixels of the input image):
     means over the pairs with a known motion (``ceiling/within_1px``, ``ceiling/ransac/tran_deg``, ...;
@@ -174,13 +175,16 @@ def flow_ceiling(chain: DeMoN, dataset, job: JobSettings) -> dict[str, float]:
     rows = []
     for batch, _, out in run_chain(chain, loader, 0, job.oracle, job.precision, job.model.channels_last,
                                    refine=False):
+        read = out.passes[0].flow
+        if job.oracle == "flow":  # (the flow dm1 read: the oracle's, not flow1's)
+            read = ground_truth_inputs(batch, batch["intrinsics"]).flow
         for i in range(batch["image1"].shape[0]):
             sample = {k: v[i] for k, v in batch.items() if isinstance(v, torch.Tensor)}
             truth = metrics.ground_truth(sample, dataset)
             motion = np.asarray(truth["motion"], dtype=np.float64)
             if not np.isfinite(motion).all():  # (a source without camera poses)
                 continue
-            flow = out.passes[0].flow[i].double().cpu().numpy()
+            flow = read[i].double().cpu().numpy()
             gt_flow = metrics.resize_nearest(np.asarray(truth["flow"], dtype=np.float64), flow.shape[1:])
             cameras = {k: sample[k].double().numpy() for k in ("intrinsics", "intrinsics2") if k in sample}
             rows.append(ceiling(flow, gt_flow, {**cameras, "motion": motion}, seed=job.baseline.seed,
