@@ -63,18 +63,17 @@ def check_options(variant: str, width: float, compat: str | None, correlation, p
         raise ValueError(f"{p}fit_weights: expected one of {_choices(FIT_WEIGHTS)}, got {fit_weights!r}")
     if fit_weights != "learned" and motion_fit is None:
         raise ValueError(f"{p}fit_weights: {fit_weights} weighs the motion fit's vectors; set {p}motion_fit")
-    if flow_refine is not None:
-        if isinstance(flow_refine, bool) or not isinstance(flow_refine, int) or flow_refine < 1:
-            raise ValueError(f"{p}flow_refine: expected null or a number of updates >= 1, got {flow_refine!r}")
+    for key, value, counted, lacking in (
+            ("flow_refine", flow_refine, "updates", "which has no flow refinement"),
+            ("motion_fit", motion_fit, "Gauss-Newton steps", "whose motion is a fully connected head")):
+        if value is None:
+            continue
+        if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+            raise ValueError(f"{p}{key}: expected null or a number of {counted} >= 1, got {value!r}")
         if compat == "demon_original":
-            raise ValueError(f"{p}flow_refine: compat=demon_original reproduces DeMoN's released graph, which has no "
-                             f"flow refinement; leave {p}flow_refine null")
+            raise ValueError(f"{p}{key}: compat=demon_original reproduces DeMoN's released graph, {lacking}; "
+                             f"leave {p}{key} null")
     if motion_fit is not None:
-        if isinstance(motion_fit, bool) or not isinstance(motion_fit, int) or motion_fit < 1:
-            raise ValueError(f"{p}motion_fit: expected null or a number of Gauss-Newton steps >= 1, got {motion_fit!r}")
-        if compat == "demon_original":
-            raise ValueError(f"{p}motion_fit: compat=demon_original reproduces DeMoN's released graph, whose motion "
-                             f"is a fully connected head; leave {p}motion_fit null")
         for key in ("dm1_prior", "dm2_prior"):
             if priors.get(key) is not None:
                 raise ValueError(f"{p}{key}: the motion fit (motion_fit={motion_fit}) reads the motion from the flow "
