@@ -239,6 +239,13 @@ def test_fresh_scenes_and_keep_best_key_their_stage_and_the_later_ones_only(opti
     assert (other_val == changed) == ("fresh_scenes" in option)
 
 
+
+def _stage_runs(c, run_id: str) -> dict:
+    """The stage runs of a job's run, by stage name."""
+    stages = c.search_runs([c.get_experiment_by_name("default").experiment_id],
+                           filter_string=f"tags.`mlflow.parentRunId` = '{run_id}'")
+    return {r.data.tags["demon_lab.stage"]: r for r in stages}
+
 @pytest.mark.slow
 def test_the_learned_design_trains_every_stage_keeping_its_best_nets_on_fresh_scenes(tmp_path):
     """design=learned end to end at the smoke scale (its own data loader worker): every stage run
@@ -256,10 +263,8 @@ def test_the_learned_design_trains_every_stage_keeping_its_best_nets_on_fresh_sc
     result = run(cfg)
     assert result["status"] == "finished"
     c = client(tmp_path)
-    stages = c.search_runs([c.get_experiment_by_name("default").experiment_id],
-                           filter_string=f"tags.`mlflow.parentRunId` = '{result['run_id']}'")
-    by_stage = {r.data.tags["demon_lab.stage"]: r for r in stages}
-    assert len(by_stage) == 6 and all(r.info.status == "FINISHED" for r in stages)
+    by_stage = _stage_runs(c, result["run_id"])
+    assert len(by_stage) == 6 and all(r.info.status == "FINISHED" for r in by_stage.values())
     figures = c.get_run(result["run_id"]).data.metrics
     for stage, metric in (("flow1", "epe"), ("dm1", "tran_deg"), ("iterative", "tran_deg")):
         assert figures[f"stage/{stage}/keep_best_step"] in ({4.0, 8.0} if stage != "iterative" else {1.0, 2.0})
@@ -347,10 +352,8 @@ def test_the_fit_design_trains_every_stage_with_its_flow_refinement_motion_fit_a
     result = run(cfg)
     assert result["status"] == "finished"
     c = client(tmp_path)
-    stages = c.search_runs([c.get_experiment_by_name("default").experiment_id],
-                           filter_string=f"tags.`mlflow.parentRunId` = '{result['run_id']}'")
-    by_stage = {r.data.tags["demon_lab.stage"]: r for r in stages}
-    assert len(by_stage) == 7 and all(r.info.status == "FINISHED" for r in stages)
+    by_stage = _stage_runs(c, result["run_id"])
+    assert len(by_stage) == 7 and all(r.info.status == "FINISHED" for r in by_stage.values())
     assert [k for k in by_stage["flow1r"].data.metrics if k.endswith("flow2_refined")]
     for stage in ("dm1", "dm2", "iterative"):
         terms = [k for k in by_stage[stage].data.metrics if k.endswith("fit_residual")]

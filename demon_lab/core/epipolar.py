@@ -115,16 +115,17 @@ def _tangent_basis(t: Tensor) -> Tensor:
     return torch.stack([b1, _cross(t, b1)], -1)
 
 
-def residuals(R: Tensor, t: Tensor, x1: Tensor, x2: Tensor) -> tuple[Tensor, Tensor]:
-    """The algebraic epipolar residuals ``x2^T [t]x R x1`` (B, N) and their Sampson denominators
-    ``|(E x1)_12|^2 + |(E^T x2)_12|^2``: the squared Sampson distance is their ratio."""
+def residuals(R: Tensor, t: Tensor, x1: Tensor, x2: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """The algebraic epipolar residuals ``x2^T [t]x R x1`` (B, N), their Sampson denominators
+    ``|(E x1)_12|^2 + |(E^T x2)_12|^2`` (the squared Sampson distance is their ratio) and the rotated
+    bearings ``R x1`` (B, N, 3)."""
     y = torch.einsum("bij,bnj->bni", R, x1)
     tb = t[:, None].expand_as(y)
     e_x1 = _cross(tb, y)  # E x1 = [t]x R x1
     et_x2 = -torch.einsum("bji,bnj->bni", R, _cross(tb, x2))  # E^T x2 = R^T [t]x^T x2
     e = (x2 * e_x1).sum(-1)
     denominator = (e_x1[..., :2] ** 2).sum(-1) + (et_x2[..., :2] ** 2).sum(-1)
-    return e, denominator.clamp_min(1e-18)
+    return e, denominator.clamp_min(1e-18), y
 
 
 def gauss_newton_step(R: Tensor, t: Tensor, x1: Tensor, x2: Tensor, weights: Tensor,
@@ -132,9 +133,8 @@ def gauss_newton_step(R: Tensor, t: Tensor, x1: Tensor, x2: Tensor, weights: Ten
     """One Gauss-Newton step on the weighted squared Sampson distances; ``robust_scale`` (B,): the
     Cauchy scale in the bearings' units, which reweights each correspondence at the current motion
     (None: the weights as given)."""
-    y = torch.einsum("bij,bnj->bni", R, x1)
+    e, denominator, y = residuals(R, t, x1, x2)
     tb = t[:, None].expand_as(y)
-    e, denominator = residuals(R, t, x1, x2)
     omega = weights / denominator
     if robust_scale is not None:
         squared = e * e / denominator
@@ -179,7 +179,7 @@ def sampson_px(flow: Tensor, motion: Tensor, intrinsics: Tensor) -> tuple[Tensor
     R = geo.angle_axis_to_matrix(motion[:, :3].double())
     t = motion[:, 3:].double()
     t = t / t.norm(dim=1, keepdim=True).clamp_min(1e-12)
-    e, denominator = residuals(R, t, x1, x2)
+    e, denominator, _ = residuals(R, t, x1, x2)
     pixels = intrinsics.double()[:, 0:1] * flow.shape[3]
     distance = torch.sqrt(e * e / denominator + 1e-18) * pixels
     return torch.where(valid, distance, torch.zeros_like(distance)).float(), valid
