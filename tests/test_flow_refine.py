@@ -8,7 +8,7 @@ import torch
 
 from demon_lab.core import losses
 from demon_lab.nets.chain import DeMoN, ground_truth_inputs
-from demon_lab.nets.flow_refine import FlowRefine
+from demon_lab.nets.flow_refine import FINE_UPDATES, RADIUS, FlowRefine, displacements
 from demon_lab.pipeline.config import ConfigError
 
 
@@ -23,24 +23,61 @@ def _batch(seeds=(0, 1, 2, 3), size=(64, 96)):
     return batch
 
 
-def test_the_untrained_refinement_returns_the_flow_it_is_given_and_the_chain_reads_the_refined_flow():
+def test_each_update_moves_the_flow_by_its_matchs_expected_displacement_and_the_chain_reads_the_refined_flow():
+    """An untrained update (its correction starting at none) moves each vector by the mean displacement
+    of its match probabilities, in the pixels of its level; the fine updates' flow is averaged back to
+    level 2; the chain's bootstrap flow is the refinement's last."""
+    torch.manual_seed(0)
     batch = _batch(seeds=(0,))
     pair = torch.cat([batch["image1"], batch["image2"]], 1)
     flow = 0.01 * torch.randn(1, 2, 16, 24)
     refined = FlowRefine("v1", 0.25, iterations=2)(pair, flow)
-    assert len(refined) == 2 and all(torch.equal(f, flow) for f in refined)
+    assert len(refined.flows) == len(refined.matches) == 2 + FINE_UPDATES
+    assert [m.level for m in refined.matches] == [2, 2] + [1] * FINE_UPDATES
+    for k, match in enumerate(refined.matches[:2]):
+        probs = match.log_probs.exp()
+        torch.testing.assert_close(probs.sum(1), torch.ones(1, 16, 24))
+        pixels = torch.tensor([24.0, 16.0]).view(1, 2, 1, 1)
+        expected = (probs.unsqueeze(1) * displacements(RADIUS, probs)).sum(2) / pixels
+        torch.testing.assert_close(refined.flows[k], match.start + expected)
+    assert refined.matches[2].start.shape[2:] == (32, 48)
+    torch.testing.assert_close(refined.flows[-1], torch.nn.functional.avg_pool2d(
+        refined.matches[-1].start + (refined.matches[-1].log_probs.exp().unsqueeze(1)
+                                     * displacements(3, flow)).sum(2) / torch.tensor([48.0, 32.0]).view(1, 2, 1, 1), 2))
     chain = DeMoN("v1", 0.25, (64, 96), flow_refine=2)
     with torch.no_grad():
-        chain.flow1_refine.delta.conv.bias.fill_(0.5)  # a refinement that moves every vector half a level-2 pixel
         raw = chain.flow_net1(pair, refine=False)[1][:, :2]
         out = chain(batch["image1"], batch["image2"], batch["intrinsics"], iterations=0, refine=False)
-    torch.testing.assert_close(out.passes[0].flow, raw + 2 * 0.5 / torch.tensor([24.0, 16.0]).view(1, 2, 1, 1))
+        torch.testing.assert_close(out.passes[0].flow, chain.refine_flow(pair, raw).flows[-1])
+    assert not torch.allclose(out.passes[0].flow, raw)
     assert "flow1_refine" not in dict(DeMoN("v1", 0.25, (64, 96)).named_children())
+
+
+def test_the_match_target_is_the_true_displacement_split_over_its_four_neighbours():
+    """window_target: a displacement on the grid is one displacement of the window, one between grid
+    points its bilinear split (the target's mean is the displacement); outside the window or without a
+    true flow, no target; match_loss is the cross-entropy with it."""
+    h, w, r = 2, 3, 2
+    start = torch.zeros(1, 2, h, w)
+    pixels = torch.tensor([w, h], dtype=torch.float32).view(1, 2, 1, 1)
+    moved = torch.tensor([[[1.0, -0.25, 3.0], [0.0, 1.5, float("nan")]],
+                          [[-2.0, 0.75, 0.0], [0.0, -0.5, 0.0]]]).unsqueeze(0)
+    target, inside = losses.window_target(start, moved / pixels, r)
+    assert inside.tolist() == [[[True, True, False], [True, True, False]]]
+    grid = displacements(r, start).view(2, -1)
+    mean = torch.einsum("dk,bkhw->bdhw", grid, target)
+    torch.testing.assert_close(mean[:, :, inside[0]], moved[:, :, inside[0]])
+    assert target[0, :, 0, 0].max() == 1.0 and int((target[0, :, 0, 0] > 0).sum()) == 1
+    assert target[0, :, 1, 1].tolist().count(0.25) == 4  # (1.5, -0.5) px: midway between four displacements
+    torch.testing.assert_close(target[:, :, inside[0]].sum(1), torch.ones(1, int(inside.sum())))
+    log_probs = torch.log_softmax(torch.randn(1, (2 * r + 1) ** 2, h, w), 1)
+    expected = -(target * log_probs).sum(1)[inside].mean()
+    torch.testing.assert_close(losses.match_loss(log_probs, start, moved / pixels), expected)
 
 
 def test_the_refinement_learns_to_correct_a_flow_that_is_off_by_a_pixel():
     """Trained on four rendered pairs fed their true level-2 flow moved by 1.5 px, the refinement's
-    flow ends far closer to the truth than the flow it is given (its loss reaches the features'
+    flow ends far closer to the truth than the flow it is given (its losses reach the features'
     correlation through the warp)."""
     torch.manual_seed(0)
     batch = _batch()
@@ -50,15 +87,15 @@ def test_the_refinement_learns_to_correct_a_flow_that_is_off_by_a_pixel():
     given = torch.nan_to_num(truth) + torch.tensor([1.5 / w, -1.5 / h]).view(1, 2, 1, 1)
     net = FlowRefine("v1", 0.5, iterations=2)
     optimiser = torch.optim.Adam(net.parameters(), lr=2e-3)
-    gt = {"flow2": truth}
+    gt = losses.ground_truth(batch)
     before = float(losses.pointwise_l2(given, truth))
     for _ in range(150):
         optimiser.zero_grad()
-        loss, _ = losses.refined_flow_loss(net(pair, given), gt, {"flow": 1.0})
+        loss, _ = losses.refined_flow_loss(net(pair, given), gt, {"flow": 1.0, "flow_match": 0.1})
         loss.backward()
         optimiser.step()
     with torch.no_grad():
-        after = float(losses.pointwise_l2(net(pair, given)[-1], truth))
+        after = float(losses.pointwise_l2(net(pair, given).flows[-1], truth))
     assert after < 0.5 * before, (before, after)
 
 
@@ -88,7 +125,7 @@ def test_the_refinement_stage_trains_between_flow1_and_dm1_and_keys_them_so():
     learned = {d.name: d.key for d in stage_dirs(settings(compose_config(["design=learned"])))}
     assert dirs["flow1"].key == learned["flow1"]
     assert dirs["dm1"].description["upstream"] == {"flow1": dirs["flow1"].key, "flow1r": dirs["flow1r"].key}
-    assert dirs["flow1r"].description["loss"] == {"flow": job.loss["flow"]}
+    assert dirs["flow1r"].description["loss"] == {"flow": job.loss["flow"], "flow_match": job.loss["flow_match"]}
     assert job.stages["flow1r"].trained_nets() == ("flow1_refine",)
 
 

@@ -330,7 +330,8 @@ def test_ground_truth_is_computed_as_a_loss_reads_it_with_the_eager_values():
     batch["inv_depth"][0, 0, :3, :3] = 0  # invalid pixels become NaN in the pyramid
     pyramid = loss_maps.inverse_depth_pyramid(batch["inv_depth"], levels=5)
     k = batch["intrinsics"]
-    eager = {"inv_depth0": pyramid[0], "inv_depth2": pyramid[2], "inv_depth5": pyramid[5],
+    eager = {"inv_depth0": pyramid[0], "inv_depth1": pyramid[1], "inv_depth2": pyramid[2], "inv_depth5": pyramid[5],
+             "flow1": geo.flow_from_depth_motion(pyramid[1], batch["motion"], k, k),
              "flow2": geo.flow_from_depth_motion(pyramid[2], batch["motion"], k, k),
              "flow5": geo.flow_from_depth_motion(pyramid[5], batch["motion"], k, k),
              "normals0": geo.normals_from_depth(pyramid[0], k), "normals2": geo.normals_from_depth(pyramid[2], k),

@@ -21,7 +21,14 @@ depth-from-flow layers read one quantity from another (:mod:`demon_lab.core.geom
    weight of its Sampson distance at the current motion (``ROBUST_PX``): iteratively reweighted least
    squares. These steps are differentiable: the motion's gradient reaches the weights and the flow
    (as in DeepV2D's motion module, Teed & Deng, ICLR 2020, a Gauss-Newton update on learned flow and
-   weights).
+   weights);
+4. with ``starts`` > 0, the steps run from the 8-point start and from ``starts`` more, its rotation with
+   translation directions spread over a hemisphere (:func:`hemisphere`), all at once; the fit with the
+   lowest robust cost (:func:`robust_cost`) is the layer's motion, its translation's sign the one that
+   puts more weight in front of both cameras. On a flow whose error is spread over every vector, the
+   Sampson cost has minima the 8-point start falls into (a small baseline, planar rooms); the other
+   starts find the deeper one (docs/notes/2026-12-learned-motion.md). The choice is discrete, as
+   RANSAC's is, but deterministic and of the whole flow; the gradient flows through the chosen fit.
 
 :func:`sampson_px` is the geometric residual the layer is trained with beside DeMoN's motion losses: the
 Sampson distance of the ground-truth flow's correspondences under the predicted motion, in pixels.
@@ -152,12 +159,31 @@ def gauss_newton_step(R: Tensor, t: Tensor, x1: Tensor, x2: Tensor, weights: Ten
     return R, t / t.norm(dim=1, keepdim=True).clamp_min(1e-12)
 
 
-def fit_motion(flow: Tensor, weights: Tensor, intrinsics: Tensor, steps: int = 3) -> Tensor:
+def hemisphere(n: int, like: Tensor) -> Tensor:
+    """``n`` unit directions (n, 3) spread evenly over the hemisphere z > 0 (a Fibonacci spiral): the
+    translation directions of the fit's further starts (a direction and its opposite have one Sampson
+    cost)."""
+    k = torch.arange(n, dtype=like.dtype, device=like.device) + 0.5
+    z = k / n
+    angle = torch.pi * (1 + 5 ** 0.5) * k
+    r = (1 - z * z).sqrt()
+    return torch.stack([r * angle.cos(), r * angle.sin(), z], 1)
+
+
+def robust_cost(R: Tensor, t: Tensor, x1: Tensor, x2: Tensor, weights: Tensor, scale: Tensor) -> Tensor:
+    """The Cauchy cost (B,) that the reweighted steps lower: the weighted sum over the correspondences of
+    ``log(1 + d^2 / scale^2)``, ``d`` the Sampson distance; ``scale`` (B,) in the bearings' units."""
+    e, denominator, _ = residuals(R, t, x1, x2)
+    return (weights * torch.log1p(e * e / denominator / scale[:, None] ** 2)).sum(1)
+
+
+def fit_motion(flow: Tensor, weights: Tensor, intrinsics: Tensor, steps: int = 3, starts: int = 0) -> Tensor:
     """The camera motion (B, 6) ``[r, t]`` (angle-axis, unit t; ``X2 = R X1 + t``) that fits ``flow``
     (B, 2, h, w) normalised with the per-pixel ``weights`` (B, 1, h, w), >= 0: the weighted 8-point
-    start, then ``steps`` Gauss-Newton steps, reweighted from the second on (module docstring).
-    Non-finite flow vectors get no weight. Computed in float64, returned in float32 (float64 for a
-    float64 flow); differentiable in ``flow`` and ``weights`` through the Gauss-Newton steps."""
+    start, then ``steps`` Gauss-Newton steps, reweighted from the second on; with ``starts`` > 0 the
+    steps also run from that many more starts, and the fit of the lowest robust cost is kept (module
+    docstring). Non-finite flow vectors get no weight. Computed in float64, returned in float32 (float64
+    for a float64 flow); differentiable in ``flow`` and ``weights`` through the Gauss-Newton steps."""
     if steps < 1:
         raise ValueError(f"motion_fit: expected at least 1 Gauss-Newton step, got {steps}")
     flow64, w64 = flow.double(), weights.double()
@@ -165,8 +191,19 @@ def fit_motion(flow: Tensor, weights: Tensor, intrinsics: Tensor, steps: int = 3
     w = torch.where(valid, w64.flatten(1), torch.zeros_like(w64.flatten(1)))
     R, t = decompose(eight_point(x1, x2, w), x1, x2, w)
     pixel = 1.0 / (intrinsics.double()[:, 0] * flow.shape[3])  # one pixel of the grid in the bearings' units
+    batch, hypotheses = len(R), 1 + starts
+    if starts:  # every start as a batch element of its own: (hypothesis, batch) flattened
+        t = torch.cat([t, hemisphere(starts, t).repeat_interleave(batch, 0)])
+        R, x1, x2, w, pixel = (v.repeat((hypotheses,) + (1,) * (v.dim() - 1)) for v in (R, x1, x2, w, pixel))
     for step in range(steps):
         R, t = gauss_newton_step(R, t, x1, x2, w, ROBUST_PX * pixel if step > 0 else None)
+    if starts:
+        with torch.no_grad():
+            cost = robust_cost(R, t, x1, x2, w, ROBUST_PX * pixel).view(hypotheses, batch)
+            best = cost.argmin(0) * batch + torch.arange(batch, device=cost.device)
+            z1, z2 = depths(R[best], t[best], x1[best], x2[best])
+            behind = (w[best] * ((z1 < 0) & (z2 < 0))).sum(1) > (w[best] * ((z1 > 0) & (z2 > 0))).sum(1)
+        R, t = R[best], torch.where(behind[:, None], -t[best], t[best])
     motion = torch.cat([geo.matrix_to_angle_axis(R), t], 1)
     return motion.to(torch.promote_types(flow.dtype, torch.float32))
 

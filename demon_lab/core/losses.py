@@ -13,6 +13,7 @@ Weights come from a preset (``conf/loss/``); ``ramp`` multiplies the scale-invar
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping
 
 import torch
@@ -26,11 +27,12 @@ EPS = 1e-5
 WEIGHT_KEYS = ("flow", "flow_conf", "flow_sig", "flow_conf_sig", "depth", "depth_sig", "normals",
                "rotation", "translation", "refine_depth", "refine_depth_sig", "refine_normals")
 FLOW_WEIGHTS = ("flow", "flow_conf", "flow_sig", "flow_conf_sig")
-OPTIONAL_WEIGHTS = {"fit_residual": 0.0}
+OPTIONAL_WEIGHTS = {"fit_residual": 0.0, "flow_match": 0.0}
 """Weights a preset may leave out, with the value it then has (added after the presets were written; a
 key leaves a weight at this value out, so older keys hold): ``fit_residual``, the geometric residual of
-the predicted motion (:func:`motion_residual`)."""
-REFINED_FLOW_WEIGHTS = ("flow",)
+the predicted motion (:func:`motion_residual`); ``flow_match``, the flow refinement's match loss
+(:func:`match_loss`)."""
+REFINED_FLOW_WEIGHTS = ("flow", "flow_match")
 REFINED_FLOW_DECAY = 0.8
 """The weight of each update's flow in :func:`refined_flow_loss` relative to the next one's (RAFT's)."""
 DEPTH_MOTION_WEIGHTS = ("depth", "depth_sig", "normals", "rotation", "translation", "fit_residual")
@@ -140,17 +142,57 @@ def depth_motion_loss(inv_depth: torch.Tensor, normals: torch.Tensor, motion: to
 
 
 @float32
-def refined_flow_loss(flows: list[torch.Tensor], gt: Mapping[str, torch.Tensor],
+def refined_flow_loss(refinement, gt: Mapping[str, torch.Tensor],
                       weights: Mapping[str, float]) -> tuple[torch.Tensor, Terms]:
-    """Loss of the flow refinement (``model.flow_refine``): the level-2 endpoint error of each update's
-    flow (:func:`pointwise_l2` against ``gt["flow2"]``, as flow1's), weighted by
-    :data:`REFINED_FLOW_DECAY` to the power of the updates after it (the last weighs 1), times the flow
-    weight (RAFT's sequence loss; the norm per pixel, not its square, so the precise vectors count as
-    much as the far ones)."""
+    """Loss of the flow refinement (``model.flow_refine``, a
+    :class:`demon_lab.nets.flow_refine.Refinement`): the level-2 endpoint error of each update's flow
+    (:func:`pointwise_l2` against ``gt["flow2"]``, as flow1's), weighted by :data:`REFINED_FLOW_DECAY`
+    to the power of the updates after it (the last weighs 1), times the flow weight (RAFT's sequence
+    loss; the norm per pixel, not its square, so the precise vectors count as much as the far ones);
+    and where ``weights`` give ``flow_match`` > 0, that weight times the sum over the updates of their
+    :func:`match_loss` against the true flow at the update's level."""
+    flows = refinement.flows
     n = len(flows)
     terms: Terms = {"flow2_refined": weights["flow"] * sum(
         REFINED_FLOW_DECAY ** (n - 1 - k) * pointwise_l2(f, gt["flow2"]) for k, f in enumerate(flows))}
+    if weights.get("flow_match", 0.0) > 0:
+        terms["flow_match"] = weights["flow_match"] * sum(
+            match_loss(m.log_probs, m.start, gt[f"flow{m.level}"]) for m in refinement.matches)
     return _weighted(terms), terms
+
+
+@float32
+def window_target(start: torch.Tensor, truth: torch.Tensor, radius: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """The true displacement from ``start`` to ``truth`` (B, 2, h, w, normalised flows) as a distribution
+    over a window of reach ``radius`` pixels (B, D*D, h, w; the order of
+    :func:`demon_lab.nets.blocks.correlation`'s channels): its four neighbouring displacements with
+    their bilinear weights, so that the distribution's mean is the displacement; and where it lies in
+    the window with a true flow there (B, h, w), bool."""
+    height, width = start.shape[2:]
+    d = (truth - start) * start.new_tensor([width, height]).view(1, 2, 1, 1)
+    known = torch.isfinite(d).all(1)
+    x, y = (torch.where(known, d[:, i], torch.zeros_like(d[:, i])) + radius for i in (0, 1))
+    n = 2 * radius + 1
+    inside = known & (x >= 0) & (x <= n - 1) & (y >= 0) & (y <= n - 1)
+    x, y = x.clamp(0, n - 1), y.clamp(0, n - 1)
+    x0, y0 = x.floor().clamp(max=n - 2), y.floor().clamp(max=n - 2)
+    ax, ay = x - x0, y - y0
+    target = start.new_zeros(start.shape[0], n * n, height, width)
+    for dx, dy, weight in ((0, 0, (1 - ax) * (1 - ay)), (1, 0, ax * (1 - ay)), (0, 1, (1 - ax) * ay), (1, 1, ax * ay)):
+        target.scatter_add_(1, ((y0 + dy) * n + x0 + dx).long().unsqueeze(1), weight.unsqueeze(1))
+    return target, inside
+
+
+@float32
+def match_loss(log_probs: torch.Tensor, start: torch.Tensor, truth: torch.Tensor) -> torch.Tensor:
+    """The cross-entropy of a window's match probabilities (``log_probs`` (B, D*D, h, w), centred on the
+    flow ``start``) with the true displacement's :func:`window_target`, over the pixels whose true
+    displacement lies in the window: it trains the features to match where the endpoint error of a
+    soft argmax trains them only through the mean (the probe: docs/notes/2026-12-learned-motion.md)."""
+    radius = (math.isqrt(log_probs.shape[1]) - 1) // 2
+    target, inside = window_target(start, truth.detach(), radius)
+    per_pixel = -(target * log_probs).sum(1)
+    return (per_pixel * inside).sum() / inside.sum().clamp_min(1)
 
 
 @float32
@@ -181,12 +223,14 @@ class GroundTruth(Mapping):
     """DeMoN's ``prepare_ground_truth_tensors`` (`python/depthmotionnet/v2/losses.py`;
     docs/reference.md §4) from a batch of samples, each tensor computed on first access: inverse
     depth at levels 0, 2, 5 (median pyramid, built only as deep as a key needs), flow at levels 2
-    and 5 from depth and motion (or, for a batch that carries ``flow`` and no geometry, the 2-D
+    and 5 from depth and motion (and at level 1 with its depth, for the flow refinement's matches:
+    not DeMoN's) (or, for a batch that carries ``flow`` and no geometry, the 2-D
     layers of ``layers_first``, that flow's mean over each level's pixel), normals at levels 0 and 2,
     and the motion. A stage reads only what its loss does (the flow stages no normals, the
     depth-motion stages no level 5), with the same values as computing everything."""
 
-    KEYS = ("inv_depth0", "inv_depth2", "inv_depth5", "flow2", "flow5", "normals0", "normals2", "motion")
+    KEYS = ("inv_depth0", "inv_depth1", "inv_depth2", "inv_depth5", "flow1", "flow2", "flow5", "normals0", "normals2",
+            "motion")
 
     def __init__(self, batch: Mapping[str, torch.Tensor]):
         self._batch = batch

@@ -30,7 +30,7 @@ from demon_lab.core.execution import float32
 from demon_lab.nets.blocks import VARIANTS, check_correlation, check_size
 from demon_lab.nets.depth_motion_net import DepthMotion, DepthMotionNet
 from demon_lab.nets.flow_net import FlowNet
-from demon_lab.nets.flow_refine import FlowRefine
+from demon_lab.nets.flow_refine import FlowRefine, Refinement
 from demon_lab.nets.prior import CHOICES as PRIOR_CHOICES
 from demon_lab.nets.prior import DIS_UPSAMPLE, RANSAC_SETTINGS, dis_prior, ransac_motion
 from demon_lab.nets.refine_net import RefineNet
@@ -51,11 +51,12 @@ def _choices(values: tuple) -> str:
 
 def check_options(variant: str, width: float, compat: str | None, correlation, priors: dict[str, str | None],
                   prefix: str = "", motion_fit: int | None = None, flow_refine: int | None = None,
-                  fit_weights: str = "learned") -> None:
+                  fit_weights: str = "learned", fit_starts: int = 0) -> None:
     """The rules of the chain's options, one ValueError line naming the option (``prefix`` + its name:
     ``model.`` where a config sets them): the variant and compat, a positive width, the correlation
     front, each prior's choices, ``ransac_prior``'s flow1 prior, the motion fit's steps (a positive
-    integer, without a motion prior: the fit reads the motion itself), the flow refinement's updates (a
+    integer, without a motion prior: the fit reads the motion itself; its further starts, >= 0, only
+    with it), the flow refinement's updates (a
     positive integer), and DeMoN's released graph (``compat=demon_original``) with neither a correlation
     front, nor priors, nor a motion fit, nor a flow refinement."""
     p = prefix
@@ -63,6 +64,10 @@ def check_options(variant: str, width: float, compat: str | None, correlation, p
         raise ValueError(f"{p}fit_weights: expected one of {_choices(FIT_WEIGHTS)}, got {fit_weights!r}")
     if fit_weights != "learned" and motion_fit is None:
         raise ValueError(f"{p}fit_weights: {fit_weights} weighs the motion fit's vectors; set {p}motion_fit")
+    if isinstance(fit_starts, bool) or not isinstance(fit_starts, int) or fit_starts < 0:
+        raise ValueError(f"{p}fit_starts: expected a number of further starts >= 0, got {fit_starts!r}")
+    if fit_starts and motion_fit is None:
+        raise ValueError(f"{p}fit_starts: {fit_starts} starts of the motion fit; set {p}motion_fit")
     for key, value, counted, lacking in (
             ("flow_refine", flow_refine, "updates", "which has no flow refinement"),
             ("motion_fit", motion_fit, "Gauss-Newton steps", "whose motion is a fully connected head")):
@@ -227,7 +232,8 @@ class DeMoN(nn.Module):
     at none, instead of the flow itself; or None (not DeMoN's design). ``motion_fit``: the depth-motion
     nets predict a weight per pixel and their motion is the weighted fit to the flow they read, with
     this many Gauss-Newton steps (:func:`demon_lab.core.epipolar.fit_motion`), not their fully
-    connected head's; or None (DeMoN's); ``fit_weights``: :data:`FIT_WEIGHTS`. ``flow_refine``: the
+    connected head's; or None (DeMoN's); ``fit_weights``: :data:`FIT_WEIGHTS`; ``fit_starts``: the fit's
+    starts beside the 8-point one (:func:`demon_lab.core.epipolar.fit_motion`). ``flow_refine``: the
     bootstrap flow is refined on warped features with this many updates
     (:class:`demon_lab.nets.flow_refine.FlowRefine`, the net ``flow1_refine``, trained in a stage of its
     own after flow1); or None (DeMoN's). ``nets``: nets of one's own for
@@ -238,11 +244,12 @@ class DeMoN(nn.Module):
                  compat: str | None = None, correlation: tuple[int, int] | None = None,
                  flow1_prior: str | None = None, dm1_prior: str | None = None, flow2_prior: str | None = None,
                  dm2_prior: str | None = None, nets: Mapping[str, nn.Module] | None = None,
-                 motion_fit: int | None = None, flow_refine: int | None = None, fit_weights: str = "learned"):
+                 motion_fit: int | None = None, flow_refine: int | None = None, fit_weights: str = "learned",
+                 fit_starts: int = 0):
         super().__init__()
         check_options(variant, width, compat, correlation,
                       dict(flow1_prior=flow1_prior, dm1_prior=dm1_prior, flow2_prior=flow2_prior, dm2_prior=dm2_prior),
-                      motion_fit=motion_fit, flow_refine=flow_refine, fit_weights=fit_weights)
+                      motion_fit=motion_fit, flow_refine=flow_refine, fit_weights=fit_weights, fit_starts=fit_starts)
         check_size(*size)
         given = dict(nets or {})
         if set(given) - set(SLOTS):
@@ -251,7 +258,7 @@ class DeMoN(nn.Module):
         self.correlation = None if correlation is None else check_correlation(correlation)
         self.flow1_prior, self.dm1_prior = flow1_prior, dm1_prior
         self.flow2_prior, self.dm2_prior = flow2_prior, dm2_prior
-        self.motion_fit, self.fit_weights = motion_fit, fit_weights
+        self.motion_fit, self.fit_weights, self.fit_starts = motion_fit, fit_weights, fit_starts
         kw = dict(variant=variant, width=width, size=self.size)
         fit = dict(fit=True) if motion_fit else {}
         own = {  # DeMoN's net of each slot that none is given for
@@ -325,11 +332,12 @@ class DeMoN(nn.Module):
             prior_flow = self.prior_flow(pair)
         flowconf5, flowconf2 = self.flow1(pair, prior2=prior_flow)
         if self.flow_refine and refine:
-            flowconf2 = torch.cat([self.refine_flow(pair, flowconf2[:, :2])[-1], flowconf2[:, 2:]], 1)
+            flowconf2 = torch.cat([self.refine_flow(pair, flowconf2[:, :2]).flows[-1], flowconf2[:, 2:]], 1)
         return flowconf5, flowconf2, prior_flow
 
-    def refine_flow(self, pair: torch.Tensor, flow: torch.Tensor) -> list[torch.Tensor]:
-        """The bootstrap flow at level 2 after each update of the flow refinement (``flow_refine``)."""
+    def refine_flow(self, pair: torch.Tensor, flow: torch.Tensor) -> Refinement:
+        """The bootstrap flow at level 2 after each update of the flow refinement (``flow_refine``), with
+        each update's match (:class:`demon_lab.nets.flow_refine.Refinement`)."""
         return self.flow1_refine(pair, flow)
 
     def prior_motion(self, flow: torch.Tensor, intrinsics: torch.Tensor,
@@ -358,11 +366,12 @@ class DeMoN(nn.Module):
         if not self.motion_fit:
             return dm
         if self.fit_weights == "uniform":
-            return replace(dm, motion=fit_motion(flow, torch.ones_like(flow[:, :1]), intrinsics, self.motion_fit))
+            return replace(dm, motion=fit_motion(flow, torch.ones_like(flow[:, :1]), intrinsics, self.motion_fit,
+                                                 self.fit_starts))
         if dm.weights is None:
             raise ValueError(f"model.motion_fit: the {slot} net returns no per-pixel weights (DepthMotion.weights) "
                              f"for the motion fit")
-        return replace(dm, motion=fit_motion(flow, dm.weights, intrinsics, self.motion_fit))
+        return replace(dm, motion=fit_motion(flow, dm.weights, intrinsics, self.motion_fit, self.fit_starts))
 
     def flow_net2(self, pair: torch.Tensor, image2_2: torch.Tensor, intrinsics: torch.Tensor,
                   src: Prediction | GroundTruthInputs, prev: Prediction) -> tuple[torch.Tensor, torch.Tensor]:

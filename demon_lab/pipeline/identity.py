@@ -51,7 +51,8 @@ NEUTRAL: dict[str, Any] = {
     "model.compat": None, "model.weights": None, "model.correlation": None,
     "model.flow1_prior": None, "model.dm1_prior": None, "model.flow2_prior": None, "model.dm2_prior": None,
     "precision": "32-true", "eval.ceiling": False, "model.motion_fit": None, "loss.fit_residual": 0.0,
-    "model.flow_refine": None, "schedule.order": None, "model.fit_weights": "learned",
+    "loss.flow_match": 0.0, "model.flow_refine": None, "schedule.order": None, "model.fit_weights": "learned",
+    "model.fit_starts": 0,
     "model.nets": {"flow1": None, "dm1": None, "flow2": None, "dm2": None, "refine": None},
     **{f"model.nets.{slot}": None for slot in ("flow1", "dm1", "flow2", "dm2", "refine")},
 }
@@ -236,7 +237,7 @@ def describe_stage(job, name: str, upstream: dict[str, str]) -> dict[str, Any]:
 
 
 MODEL_OPTION_FROM = {"dm1_prior": "dm1", "flow2_prior": "flow2", "dm2_prior": "dm2", "motion_fit": "dm1",
-                     "fit_weights": "dm1", "flow_refine": "flow1r"}
+                     "fit_weights": "dm1", "fit_starts": "dm1", "flow_refine": "flow1r"}
 """Model options that change only the nets from a stage on: the stages before it leave them out of
 their keys (so flow1 is shared between chains with and without ``dm1_prior``, flow1 and dm1
 between chains with and without ``flow2_prior``, flow1, dm1 and flow2 between chains with and

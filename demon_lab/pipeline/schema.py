@@ -41,6 +41,7 @@ class ModelSpec:
     motion_fit: int | None
     flow_refine: int | None
     fit_weights: str
+    fit_starts: int
     channels_last: bool
     compile: bool
     weights: str | None
@@ -61,7 +62,8 @@ class ModelSpec:
         try:
             check_options(values["variant"], values["width"], values["compat"], values["correlation"],
                           {k: values[k] for k in PRIOR_KEYS}, prefix="model.", motion_fit=values["motion_fit"],
-                          flow_refine=values["flow_refine"], fit_weights=values["fit_weights"])
+                          flow_refine=values["flow_refine"], fit_weights=values["fit_weights"],
+                          fit_starts=values["fit_starts"])
             if not isinstance(nets, dict):
                 raise ValueError(f"model.nets: expected a mapping of slots to nets, got {nets!r}")
             for slot, node in nets.items():
@@ -84,7 +86,7 @@ class ModelSpec:
         """The options that decide the chain's nets beside variant, width and correlation, as the chain
         takes them (keyword arguments): the priors, the motion fit and the flow refinement."""
         return {**self.priors(), "motion_fit": self.motion_fit, "flow_refine": self.flow_refine,
-                "fit_weights": self.fit_weights}
+                "fit_weights": self.fit_weights, "fit_starts": self.fit_starts}
 
     def plugins(self) -> dict[str, Any]:
         """The nets of one's own, built from their configs (``nets``), by slot: the class its

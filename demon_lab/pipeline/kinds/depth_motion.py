@@ -66,9 +66,9 @@ class DepthMotionStage(StageSpec):
         prior = None  # dm1's prior motion where the memo has it
         if self.joint and not given:
             flow, conf = stage.frozen(functools.partial(_unrefined_flow_and_conf, chain), pair, *pair_priors(batch))
-            flows = chain.refine_flow(pair, flow)
-            flow_total, flow_terms = losses.refined_flow_loss(flows, gt, stage.weights)
-            dm = chain.depth_motion1(pair, image2_2, flows[-1], conf, K)
+            refinement = chain.refine_flow(pair, flow)
+            flow_total, flow_terms = losses.refined_flow_loss(refinement, gt, stage.weights)
+            dm = chain.depth_motion1(pair, image2_2, refinement.flows[-1], conf, K)
             total, terms = losses.depth_motion_loss(dm.inv_depth, dm.normals, dm.motion, gt, stage.weights,
                                                     ramp=stage.ramp(2.0), intrinsics=K)
             return total + flow_total, {**terms, **flow_terms}

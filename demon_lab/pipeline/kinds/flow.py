@@ -45,8 +45,9 @@ class FlowStage(StageSpec):
     net: str = "flow1"
     """The net the stage trains: ``flow1`` (bootstrap), ``flow2`` (iterative) or ``flow1_refine`` (the
     refinement of the bootstrap flow, ``model.flow_refine``: its updates' level-2 flows scored against the
-    true flow, the later ones more, :func:`demon_lab.core.losses.refined_flow_loss`; the frozen flow1's
-    flow as its input)."""
+    true flow, the later ones more, and their matches against the true displacement with
+    ``loss.flow_match``, :func:`demon_lab.core.losses.refined_flow_loss`; the frozen flow1's flow as its
+    input)."""
     sig_start: float = 0.0
     """The fraction of the stage before its sig terms ramp in (0: DeMoN's; 1: never)."""
     level5_fade: float = 1 / 3
