@@ -239,12 +239,12 @@ def test_fresh_scenes_and_keep_best_key_their_stage_and_the_later_ones_only(opti
     assert (other_val == changed) == ("fresh_scenes" in option)
 
 
-
 def _stage_runs(c, run_id: str) -> dict:
     """The stage runs of a job's run, by stage name."""
     stages = c.search_runs([c.get_experiment_by_name("default").experiment_id],
                            filter_string=f"tags.`mlflow.parentRunId` = '{run_id}'")
     return {r.data.tags["demon_lab.stage"]: r for r in stages}
+
 
 @pytest.mark.slow
 def test_the_learned_design_trains_every_stage_keeping_its_best_nets_on_fresh_scenes(tmp_path):

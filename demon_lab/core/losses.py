@@ -223,8 +223,8 @@ class GroundTruth(Mapping):
     """DeMoN's ``prepare_ground_truth_tensors`` (`python/depthmotionnet/v2/losses.py`;
     docs/reference.md §4) from a batch of samples, each tensor computed on first access: inverse
     depth at levels 0, 2, 5 (median pyramid, built only as deep as a key needs), flow at levels 2
-    and 5 from depth and motion (and at level 1 with its depth, for the flow refinement's matches:
-    not DeMoN's) (or, for a batch that carries ``flow`` and no geometry, the 2-D
+    and 5 from depth and motion (level 1 of both too, for the flow refinement's matches: not
+    DeMoN's; or, for a batch that carries ``flow`` and no geometry, the 2-D
     layers of ``layers_first``, that flow's mean over each level's pixel), normals at levels 0 and 2,
     and the motion. A stage reads only what its loss does (the flow stages no normals, the
     depth-motion stages no level 5), with the same values as computing everything."""

@@ -234,7 +234,8 @@ class DeMoN(nn.Module):
     this many Gauss-Newton steps (:func:`demon_lab.core.epipolar.fit_motion`), not their fully
     connected head's; or None (DeMoN's); ``fit_weights``: :data:`FIT_WEIGHTS`; ``fit_starts``: the fit's
     starts beside the 8-point one (:func:`demon_lab.core.epipolar.fit_motion`). ``flow_refine``: the
-    bootstrap flow is refined on warped features with this many updates
+    bootstrap flow is refined on warped features with this many updates at level 2, then
+    :data:`demon_lab.nets.flow_refine.FINE_UPDATES` at level 1
     (:class:`demon_lab.nets.flow_refine.FlowRefine`, the net ``flow1_refine``, trained in a stage of its
     own after flow1); or None (DeMoN's). ``nets``: nets of one's own for
     some of the chain's slots (``flow1``, ``dm1``, ``flow2``, ``dm2``, ``refine``; each with the

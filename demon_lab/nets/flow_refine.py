@@ -11,8 +11,9 @@ features warped by the current flow, their cosine similarity to image 1's at str
 displacement it expects (a soft argmax, as GMFlow reads its matches: Xu et al., CVPR 2022), and a
 small convolutional correction of it, starting at none. Each update starts from the previous flow
 without its gradient (as RAFT's). The match probabilities are returned beside the flows, so that a
-loss can train the features to match directly (:func:`demon_lab.core.losses.match_loss`: the lab
-note's probe found the refinement learning nothing from the endpoint error alone in 1,200 steps).
+loss can train the features to match directly (:func:`demon_lab.core.losses.match_loss`: trained by
+the endpoint error alone, a refinement that regressed its correction hardly moved the flow,
+docs/notes/2026-12-learned-motion.md).
 """
 
 from __future__ import annotations
