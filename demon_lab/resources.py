@@ -67,7 +67,7 @@ what a stage produces (its nets, losses and priors, the data it draws, the stage
 defaults: :data:`demon_lab.pipeline.identity.CODE_VERSION`); ``generator``, what renders a synthetic scene
 (:data:`demon_lab.data.synthetic.GENERATOR_VERSION`)."""
 
-RECORDED_SOURCES = {"stage": "2e0c028dcb238c77", "generator": "52d5dbbab69255d8"}
+RECORDED_SOURCES = {"stage": "c7c4b5f6060954ba", "generator": "52d5dbbab69255d8"}
 """:func:`source_digest` of each of :data:`SOURCES` as its version names it. An edit of that code changes
 the digest, and the fast tier (tests/test_identity.py) fails until the new digest is recorded here, with
 the version bumped where the edit changes what a stage produces (or a scene). Code whose digest is not

@@ -338,8 +338,9 @@ def test_a_profiled_stage_logs_its_loops_largest_parts_and_keeps_its_keys():
 @pytest.mark.slow
 def test_the_fit_design_trains_every_stage_with_its_flow_refinement_motion_fit_and_geometric_residual(tmp_path):
     """design=fit end to end at the smoke scale: every stage run FINISHED, flow1r (between flow1 and dm1)
-    trains the flow refinement on its sequence loss, dm1, dm2 and the iterative stage log the fitted
-    motion's geometric residual among their loss terms, and the passes' motions are scored."""
+    trains the flow refinement on its sequence loss (and its confidence head), dm1, dm2 and the iterative stage log the fitted
+    motion's geometric residual among their loss terms (dm1 and dm2 also their weights' classification,
+    loss.fit_weight), and the passes' motions are scored."""
     from demon_lab.app.job import run
 
     steps = [f"scale.steps.{s}={n}" for s, n in (("flow1", 4), ("flow1r", 4), ("dm1", 4), ("flow2", 2), ("dm2", 2),
@@ -355,8 +356,12 @@ def test_the_fit_design_trains_every_stage_with_its_flow_refinement_motion_fit_a
     by_stage = _stage_runs(c, result["run_id"])
     assert len(by_stage) == 7 and all(r.info.status == "FINISHED" for r in by_stage.values())
     assert [k for k in by_stage["flow1r"].data.metrics if k.endswith("flow2_refined")]
+    assert [k for k in by_stage["flow1r"].data.metrics if k.endswith("flow_precise")]  # its confidence head
     for stage in ("dm1", "dm2", "iterative"):
         terms = [k for k in by_stage[stage].data.metrics if k.endswith("fit_residual")]
+        assert terms and all(math.isfinite(by_stage[stage].data.metrics[k]) for k in terms), (stage, terms)
+    for stage in ("dm1", "dm2"):  # the weights classified against the precise vectors (loss.fit_weight)
+        terms = [k for k in by_stage[stage].data.metrics if k.endswith("fit_weight")]
         assert terms and all(math.isfinite(by_stage[stage].data.metrics[k]) for k in terms), (stage, terms)
     assert not [k for k in by_stage["flow1"].data.metrics if k.endswith("fit_residual")]
     metrics = c.get_run(result["run_id"]).data.metrics

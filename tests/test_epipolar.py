@@ -118,6 +118,40 @@ def test_the_motions_geometric_residual_is_zero_for_the_true_motion_and_gives_a_
     assert "fit_residual" not in plain and float(fitted["fit_residual"]) == pytest.approx(2 * float(residual), rel=1e-5)
 
 
+def test_the_weight_loss_classifies_each_vector_by_its_distance_to_the_truth_in_input_pixels():
+    """loss.fit_weight: a vector is precise within 1 px of the input (a level-2 grid of 2 x 4 is an
+    input of 8 x 16); the loss is the weights' cross-entropy with that label over the known truth, its
+    gradient raises the precise vectors' weights and lowers the others'; depth_motion_loss adds it
+    times its weight where it is given the weights."""
+    truth = torch.zeros(1, 2, 2, 4)
+    truth[0, :, 1, 3] = float("nan")  # unknown: left out
+    flow = torch.zeros(1, 2, 2, 4)
+    flow[0, 0, 0, 0] = 0.9 / 16  # 0.9 px in x: precise
+    flow[0, 1, 0, 1] = 0.9 / 8  # 0.9 px in y: precise
+    flow[0, 0, 0, 2] = 1.1 / 16  # 1.1 px: not
+    flow[0, 1, 1, 0] = 2.0 / 8  # 2 px: not
+    flow[0, :, 1, 1] = torch.tensor([0.6 / 16, 0.6 / 8])  # 0.6 px in x and y, 0.85 px: precise
+    flow[0, :, 1, 2] = torch.tensor([0.8 / 16, 0.8 / 8])  # 0.8 px in x and y, 1.13 px: not
+    precise = torch.tensor([[1, 1, 0, 1], [0, 1, 0, 0]], dtype=torch.bool)  # (0, 3): exact
+    weights = torch.full((1, 1, 2, 4), 0.7, requires_grad=True)
+    loss = losses.fit_weight_loss(weights, flow, truth)
+    known = torch.ones(2, 4, dtype=torch.bool)
+    known[1, 3] = False
+    expected = torch.where(precise, -torch.log(torch.tensor(0.7)), -torch.log(torch.tensor(0.3)))[known].mean()
+    assert float(loss) == pytest.approx(float(expected), rel=1e-5)
+    loss.backward()
+    grad = weights.grad[0, 0]
+    assert (grad[precise & known] < 0).all() and (grad[~precise & known] > 0).all() and grad[1, 3] == 0
+    gt = {"inv_depth2": torch.rand(1, 1, 2, 4), "normals2": torch.rand(1, 3, 2, 4), "motion": torch.rand(1, 6),
+          "flow2": truth}
+    weights_preset = {**{k: 1.0 for k in losses.WEIGHT_KEYS}, "fit_weight": 3.0}
+    _, terms = losses.depth_motion_loss(gt["inv_depth2"], gt["normals2"], gt["motion"], gt, weights_preset,
+                                        fit_weights=weights.detach(), fit_flow=flow)
+    assert float(terms["fit_weight"]) == pytest.approx(3 * float(expected), rel=1e-5)
+    _, plain = losses.depth_motion_loss(gt["inv_depth2"], gt["normals2"], gt["motion"], gt, weights_preset)
+    assert "fit_weight" not in plain  # no weights given (the iterative stage's passes return none)
+
+
 def test_an_untrained_chain_with_the_fit_reads_the_true_motion_from_the_true_flow():
     """The chain's bootstrap pass under oracle=flow, its nets untrained (every weight 0.5): the
     motion is the true motion (within 0.1 degrees), and each iterative pass fits again; the loss's

@@ -125,8 +125,51 @@ def test_the_refinement_stage_trains_between_flow1_and_dm1_and_keys_them_so():
     learned = {d.name: d.key for d in stage_dirs(settings(compose_config(["design=learned"])))}
     assert dirs["flow1"].key == learned["flow1"]
     assert dirs["dm1"].description["upstream"] == {"flow1": dirs["flow1"].key, "flow1r": dirs["flow1r"].key}
-    assert dirs["flow1r"].description["loss"] == {"flow": job.loss["flow"], "flow_match": job.loss["flow_match"]}
+    assert dirs["flow1r"].description["loss"] == {k: job.loss[k] for k in ("flow", "flow_match", "fit_weight")}
     assert job.stages["flow1r"].trained_nets() == ("flow1_refine",)
+    # fit_weights=confidence gives flow1_refine its head: flow1r on holds it, flow1 is shared; a chain with
+    # no flow1r stage holds it from dm1 on
+    learned_weights = {d.name: d.key for d in stage_dirs(settings(compose_config(["design=fit",
+                                                                                  "model.fit_weights=learned"])))}
+    assert learned_weights["flow1"] == dirs["flow1"].key and learned_weights["flow1r"] != dirs["flow1r"].key
+    no_refine = {d.name: d.key for d in stage_dirs(settings(compose_config(
+        ["design=fit", "model.flow_refine=null", "schedule.order=null", "model.fit_weights=confidence"])))}
+    no_refine_learned = {d.name: d.key for d in stage_dirs(settings(compose_config(
+        ["design=fit", "model.flow_refine=null", "schedule.order=null", "model.fit_weights=learned"])))}
+    assert no_refine["flow1"] == no_refine_learned["flow1"] and no_refine["dm1"] != no_refine_learned["dm1"]
+
+
+def test_confidence_weights_are_the_nets_times_the_refinements_confidence_head():
+    """model.fit_weights=confidence: the refinement has a confidence head (0.5 everywhere untrained) that
+    dm1 reads as its confidence input; the fit's weights are dm1's times it (DepthMotion.weights); the
+    head's cross-entropy with the precise vectors (loss.fit_weight, term flow_precise) reaches it."""
+    batch = _batch(seeds=(0,))
+    torch.manual_seed(0)
+    chain = DeMoN("v1", 0.25, (64, 96), motion_fit=2, flow_refine=1, fit_weights="confidence")
+    pair = torch.cat([batch["image1"], batch["image2"]], 1)
+    truth = ground_truth_inputs(batch, batch["intrinsics"]).flow
+    refinement = chain.refine_flow(pair, truth + 0.01)
+    assert refinement.confidence.shape == truth[:, :1].shape
+    torch.testing.assert_close(refinement.confidence, torch.full_like(refinement.confidence, 0.5))
+    with torch.no_grad():  # a confidence that varies over the pixels
+        chain.flow1_refine.confidence[1].conv.bias.fill_(0.3)
+        chain.flow1_refine.confidence[1].conv.weight.normal_(0, 0.5)
+        _, flowconf2, _ = chain.flow_net1(pair)
+        refinement = chain.refine_flow(pair, chain.flow_net1(pair, refine=False)[1][:, :2])
+        torch.testing.assert_close(flowconf2[:, 2:], refinement.confidence.expand(-1, 2, -1, -1))
+        assert refinement.confidence.std() > 0.01
+        dm = chain.depth_motion1(pair, batch["image2"][:, :, ::4, ::4], flowconf2[:, :2], flowconf2[:, 2:],
+                                 batch["intrinsics"])
+        torch.testing.assert_close(dm.weights, 0.5 * refinement.confidence)  # dm1's own weights start at 0.5
+        from demon_lab.core.epipolar import fit_motion
+
+        torch.testing.assert_close(dm.motion, fit_motion(flowconf2[:, :2], dm.weights, batch["intrinsics"], 2))
+    refinement = chain.refine_flow(pair, truth + 0.01)
+    _, terms = losses.refined_flow_loss(refinement, {"flow2": truth}, {"flow": 1.0, "fit_weight": 2.0})
+    terms["flow_precise"].backward()
+    assert chain.flow1_refine.confidence[1].conv.weight.grad.abs().sum() > 0
+    plain = DeMoN("v1", 0.25, (64, 96), motion_fit=2, flow_refine=1)
+    assert plain.flow1_refine.confidence is None and plain.refine_flow(pair, truth).confidence is None
 
 
 def test_a_joint_dm1_stage_trains_the_refinement_with_dm1_and_its_motion_loss_reaches_it(tmp_path):

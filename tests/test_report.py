@@ -55,6 +55,19 @@ def test_newest_finished_run_per_row_and_seed():
     assert list(report.field(runs, "row")) == ["a", "a", "a", "a", "a", "b"]  # the tag, else the param
 
 
+def test_a_match_on_none_counts_the_runs_without_the_option():
+    """``match: {k: null}`` counts the runs that logged "None" and those that never logged ``k`` (an option
+    added after they ran); a value counts only the runs that logged it."""
+    runs = pd.DataFrame({"run_id": ["before", "none", "set"], "experiment": "e", "status": "FINISHED",
+                         "start_time": pd.Timestamp("2026-01-01", tz="UTC"), f"tags.{TAG}row": "a",
+                         "params.loss.w": [None, "None", "10.0"], "seed": [0, 1, 2]})
+    spec = {"tables": [{"name": "t", "experiment": "e", "columns": [],
+                        "rows": [{"label": "off", "match": {"row": "a", "loss.w": None}},
+                                 {"label": "on", "match": {"row": "a", "loss.w": 10.0}}]}]}
+    chosen = report.choose(spec, runs)
+    assert sorted(zip(chosen["row"], chosen["run_id"])) == [("off", "before"), ("off", "none"), ("on", "set")]
+
+
 def test_paper_numbers_merge_the_rows_of_one_cell():
     rows = report.paper_numbers()
     ref = {"table": "2", "method": "depth-motion net", "rows": ["GT flow (depth)", "GT flow (motion)"]}

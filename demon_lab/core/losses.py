@@ -27,17 +27,21 @@ EPS = 1e-5
 WEIGHT_KEYS = ("flow", "flow_conf", "flow_sig", "flow_conf_sig", "depth", "depth_sig", "normals",
                "rotation", "translation", "refine_depth", "refine_depth_sig", "refine_normals")
 FLOW_WEIGHTS = ("flow", "flow_conf", "flow_sig", "flow_conf_sig")
-OPTIONAL_WEIGHTS = {"fit_residual": 0.0, "flow_match": 0.0}
+OPTIONAL_WEIGHTS = {"fit_residual": 0.0, "flow_match": 0.0, "fit_weight": 0.0}
 """Weights a preset may leave out, with the value it then has (added after the presets were written; a
 key leaves a weight at this value out, so older keys hold): ``fit_residual``, the geometric residual of
 the predicted motion (:func:`motion_residual`); ``flow_match``, the flow refinement's match loss
-(:func:`match_loss`)."""
-REFINED_FLOW_WEIGHTS = ("flow", "flow_match")
+(:func:`match_loss`); ``fit_weight``, the motion fit's per-pixel weights classified against the flow's
+precise vectors (:func:`fit_weight_loss`)."""
+REFINED_FLOW_WEIGHTS = ("flow", "flow_match", "fit_weight")
 REFINED_FLOW_DECAY = 0.8
 """The weight of each update's flow in :func:`refined_flow_loss` relative to the next one's (RAFT's)."""
 DEPTH_MOTION_WEIGHTS = ("depth", "depth_sig", "normals", "rotation", "translation", "fit_residual")
 REFINE_WEIGHTS = ("refine_depth", "refine_depth_sig", "refine_normals")
 FLOW_SIG_WEIGHTS = ("flow_sig", "flow_conf_sig")
+PRECISE_PX = 1.0
+"""A flow vector :func:`fit_weight_loss` calls precise: its end point within this many input pixels of
+the truth's (the ceiling table's oracle pick, ``pick1``)."""
 
 
 Terms = dict[str, torch.Tensor]
@@ -119,10 +123,15 @@ def flow_loss(flowconf5: torch.Tensor, flowconf2: torch.Tensor, gt: Mapping[str,
 @float32
 def depth_motion_loss(inv_depth: torch.Tensor, normals: torch.Tensor, motion: torch.Tensor,
                       gt: Mapping[str, torch.Tensor], weights: Mapping[str, float],
-                      ramp: float = 1.0, intrinsics: torch.Tensor | None = None) -> tuple[torch.Tensor, Terms]:
+                      ramp: float = 1.0, intrinsics: torch.Tensor | None = None,
+                      fit_weights: torch.Tensor | None = None,
+                      fit_flow: torch.Tensor | None = None) -> tuple[torch.Tensor, Terms]:
     """Loss of a depth-motion net: inverse depth, its sig, normals at level 2, rotation, translation,
     and where ``weights`` give ``fit_residual`` > 0 the motion's geometric residual
-    (:func:`motion_residual`, with ``intrinsics``; not DeMoN's).
+    (:func:`motion_residual`, with ``intrinsics``; not DeMoN's), where they give ``fit_weight`` > 0 and
+    the caller gives the motion fit's per-pixel weights ``fit_weights``, their :func:`fit_weight_loss` on
+    the flow the net read, ``fit_flow`` (not DeMoN's; the iterative stage, whose passes return no
+    weights, leaves it out).
 
     ``gt``: ``inv_depth2``, ``normals2`` (level 2) and ``motion`` (B, 6), and ``flow2`` for the residual.
     The predicted depth's sig uses eps 0.01, the GT's 0.001 (as DeMoN).
@@ -138,6 +147,8 @@ def depth_motion_loss(inv_depth: torch.Tensor, normals: torch.Tensor, motion: to
         if intrinsics is None:
             raise ValueError("loss.fit_residual: the motion's geometric residual needs the intrinsics")
         terms["fit_residual"] = weights["fit_residual"] * motion_residual(motion, gt["flow2"], intrinsics)
+    if weights.get("fit_weight", 0.0) > 0 and fit_weights is not None:
+        terms["fit_weight"] = weights["fit_weight"] * fit_weight_loss(fit_weights, fit_flow, gt["flow2"])
     return _weighted(terms), terms
 
 
@@ -150,7 +161,9 @@ def refined_flow_loss(refinement, gt: Mapping[str, torch.Tensor],
     to the power of the updates after it (the last weighs 1), times the flow weight (RAFT's sequence
     loss; the norm per pixel, not its square, so the precise vectors count as much as the far ones);
     and where ``weights`` give ``flow_match`` > 0, that weight times the sum over the updates of their
-    :func:`match_loss` against the true flow at the update's level."""
+    :func:`match_loss` against the true flow at the update's level; where they give ``fit_weight`` > 0
+    and the refinement has a confidence head, that weight times its :func:`fit_weight_loss` on the
+    refined flow (``flow_precise``)."""
     flows = refinement.flows
     n = len(flows)
     terms: Terms = {"flow2_refined": weights["flow"] * sum(
@@ -158,6 +171,9 @@ def refined_flow_loss(refinement, gt: Mapping[str, torch.Tensor],
     if weights.get("flow_match", 0.0) > 0:
         terms["flow_match"] = weights["flow_match"] * sum(
             match_loss(m.log_probs, m.start, gt[f"flow{m.level}"]) for m in refinement.matches)
+    if weights.get("fit_weight", 0.0) > 0 and refinement.confidence is not None:
+        terms["flow_precise"] = weights["fit_weight"] * fit_weight_loss(refinement.confidence, flows[-1],
+                                                                        gt["flow2"])
     return _weighted(terms), terms
 
 
@@ -193,6 +209,28 @@ def match_loss(log_probs: torch.Tensor, start: torch.Tensor, truth: torch.Tensor
     target, inside = window_target(start, truth.detach(), radius)
     per_pixel = -(target * log_probs).sum(1)
     return (per_pixel * inside).sum() / inside.sum().clamp_min(1)
+
+
+@float32
+def fit_weight_loss(fit_weights: torch.Tensor, flow: torch.Tensor, truth: torch.Tensor) -> torch.Tensor:
+    """The binary cross-entropy of the motion fit's per-pixel weights (B, 1, h, w) in (0, 1) with the
+    label "this vector of ``flow`` (B, 2, h, w, normalised, a level-2 grid of 1/4 of the input) is
+    precise" (its end point within :data:`PRECISE_PX` input pixels of ``truth``'s), over the pixels
+    whose truth is known: the weights learn to be the probability that a vector is precise.
+
+    The fit's motion loss alone moves them by a gradient through the solver, summed over every pixel of
+    the pair; Yi et al. (CVPR 2018, "Learning to Find Good Correspondences", Section 4) found that loss
+    alone does not train the weights from scratch and classify each correspondence as well. The
+    committed fit design's weights without this loss fit worse than uniform weights
+    (docs/notes/2026-12-learned-motion.md)."""
+    height, width = flow.shape[2:]
+    pixels = flow.new_tensor([4 * width, 4 * height]).view(1, 2, 1, 1)
+    error = ((flow.detach().float() - truth) * pixels).norm(dim=1, keepdim=True)
+    known = torch.isfinite(error)
+    label = (error <= PRECISE_PX).float()
+    per_pixel = torch.nn.functional.binary_cross_entropy(fit_weights.float().clamp(1e-6, 1 - 1e-6), label,
+                                                         reduction="none")
+    return (per_pixel * known).sum() / known.sum().clamp_min(1)
 
 
 @float32

@@ -37,9 +37,12 @@ from demon_lab.nets.refine_net import RefineNet
 from demon_lab.nets.slots import ATTRIBUTES, SLOTS
 
 ORACLES = (None, "flow", "depth_motion")
-FIT_WEIGHTS = ("learned", "uniform")
-"""``DeMoN(fit_weights=...)``: the motion fit's per-pixel weights, the depth-motion net's (``learned``) or
-all equal (``uniform``: what the learned weights add is the difference)."""
+FIT_WEIGHTS = ("learned", "uniform", "confidence")
+"""``DeMoN(fit_weights=...)``: the motion fit's per-pixel weights, the depth-motion net's (``learned``),
+all equal (``uniform``: what the learned weights add is the difference), or the depth-motion net's times
+the confidence of the flow it reads (``confidence``: under ``flow_refine`` the bootstrap flow's
+confidence is the refinement's own head, :class:`demon_lab.nets.flow_refine.FlowRefine`, and dm1 reads
+it as its confidence input; elsewhere the flow net's confidence channels, their mean within [0, 1])."""
 COMPATS = (None, "demon_original")
 """``DeMoN(compat=...)``: None (demon_lab's inputs, docs/reference.md §11) or DeMoN's released graph exactly."""
 
@@ -273,7 +276,7 @@ class DeMoN(nn.Module):
         self.plugins = tuple(slot for slot in SLOTS if slot in given)
         self.flow_refine = flow_refine
         if flow_refine:  # (a net only where asked: every other chain's state is as it was)
-            self.flow1_refine = FlowRefine(variant, width, flow_refine)
+            self.flow1_refine = FlowRefine(variant, width, flow_refine, confidence=fit_weights == "confidence")
         with torch.no_grad():
             if self.flow2_prior and "flow2" not in given:  # the correction of the previous flow starts at none
                 for head in (self.flow2.predict_flow5, self.flow2.predict_flow2):
@@ -316,7 +319,7 @@ class DeMoN(nn.Module):
         has it, :meth:`prior_motion`)."""
         if not self.dm1_prior:
             return self.fitted(self.dm1(pair, depth_motion_net_inputs(image2_2, flow, conf, None, intrinsics,
-                                                                       self.compat)), flow, intrinsics, "dm1")
+                                                                       self.compat)), flow, conf, intrinsics, "dm1")
         prior = self.prior_motion(flow, intrinsics, prior_flow) if prior is None else prior
         dm = self.dm1(pair, depth_motion_net_inputs(image2_2, flow, conf, prior, intrinsics, self.compat))
         return replace(dm, motion=dm.motion + prior)
@@ -333,7 +336,7 @@ class DeMoN(nn.Module):
             prior_flow = self.prior_flow(pair)
         flowconf5, flowconf2 = self.flow1(pair, prior2=prior_flow)
         if self.flow_refine and refine:
-            flowconf2 = torch.cat([self.refine_flow(pair, flowconf2[:, :2]).flows[-1], flowconf2[:, 2:]], 1)
+            flowconf2 = torch.cat(refined(self.refine_flow(pair, flowconf2[:, :2]), flowconf2[:, 2:]), 1)
         return flowconf5, flowconf2, prior_flow
 
     def refine_flow(self, pair: torch.Tensor, flow: torch.Tensor) -> Refinement:
@@ -359,11 +362,14 @@ class DeMoN(nn.Module):
         dm = self.dm2(pair, depth_motion_net_inputs(image2_2, flow, conf, prev_motion, intrinsics, self.compat))
         if self.dm2_prior:
             return replace(dm, motion=dm.motion + prev_motion)
-        return self.fitted(dm, flow, intrinsics, "dm2")
+        return self.fitted(dm, flow, conf, intrinsics, "dm2")
 
-    def fitted(self, dm: DepthMotion, flow: torch.Tensor, intrinsics: torch.Tensor, slot: str) -> DepthMotion:
-        """``dm`` with ``motion_fit``: its motion the weighted fit to ``flow`` (the flow the net read) with
-        the weights it predicts (:func:`demon_lab.core.epipolar.fit_motion`); without: ``dm`` as it is."""
+    def fitted(self, dm: DepthMotion, flow: torch.Tensor, conf: torch.Tensor, intrinsics: torch.Tensor,
+               slot: str) -> DepthMotion:
+        """``dm`` with ``motion_fit``: its motion the weighted fit to ``flow`` (the flow the net read, with
+        its confidence ``conf``) with the weights :data:`FIT_WEIGHTS` names
+        (:func:`demon_lab.core.epipolar.fit_motion`), ``dm.weights`` then the weights the fit used;
+        without: ``dm`` as it is."""
         if not self.motion_fit:
             return dm
         if self.fit_weights == "uniform":
@@ -372,7 +378,11 @@ class DeMoN(nn.Module):
         if dm.weights is None:
             raise ValueError(f"model.motion_fit: the {slot} net returns no per-pixel weights (DepthMotion.weights) "
                              f"for the motion fit")
-        return replace(dm, motion=fit_motion(flow, dm.weights, intrinsics, self.motion_fit, self.fit_starts))
+        weights = dm.weights
+        if self.fit_weights == "confidence":
+            weights = weights * conf.float().mean(1, keepdim=True).clamp(0, 1)
+        return replace(dm, motion=fit_motion(flow, weights, intrinsics, self.motion_fit, self.fit_starts),
+                       weights=weights)
 
     def flow_net2(self, pair: torch.Tensor, image2_2: torch.Tensor, intrinsics: torch.Tensor,
                   src: Prediction | GroundTruthInputs, prev: Prediction) -> tuple[torch.Tensor, torch.Tensor]:
@@ -443,6 +453,14 @@ class DeMoN(nn.Module):
             passes.append(self.iterate(pair, image2_2, intrinsics, passes[-1], gt2, oracle))
         return ChainOutput(passes, self.refine(image1, passes[-1].inv_depth) if refine else None,
                            self.priors_alone(pair, intrinsics) if priors else None)
+
+
+def refined(refinement: Refinement, conf: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The refined bootstrap flow and its confidence: the refinement's own (both components) where it has a
+    confidence head (``fit_weights=confidence``), else ``conf``, flow1's."""
+    if refinement.confidence is None:
+        return refinement.flows[-1], conf
+    return refinement.flows[-1], refinement.confidence.expand(-1, 2, -1, -1).to(conf.dtype)
 
 
 def _oracle_confidence(flow: torch.Tensor) -> torch.Tensor:

@@ -50,10 +50,13 @@ class Match(NamedTuple):
 
 class Refinement(NamedTuple):
     """:class:`FlowRefine`'s output: ``flows``, the level-2 flow (B, 2, H/4, W/4), normalised, after each
-    update (the last is the refinement's flow); ``matches``, each update's :class:`Match`."""
+    update (the last is the refinement's flow); ``matches``, each update's :class:`Match`;
+    ``confidence`` (B, 1, H/4, W/4) in (0, 1), each vector's probability of being precise, where the
+    refinement has a confidence head (else None)."""
 
     flows: list[torch.Tensor]
     matches: list[Match]
+    confidence: torch.Tensor | None = None
 
 
 def displacements(radius: int, like: torch.Tensor) -> torch.Tensor:
@@ -80,7 +83,8 @@ class Update(nn.Module):
             self.delta.conv.bias.zero_()
 
     def forward(self, features1: torch.Tensor, features2: torch.Tensor, flow: torch.Tensor
-                ) -> tuple[torch.Tensor, Match]:
+                ) -> tuple[torch.Tensor, Match, torch.Tensor]:
+        """The flow after the update, its match, and the hidden features the correction is read from."""
         flow = flow.detach().float()
         height, width = flow.shape[2:]
         pixels = flow.new_tensor([width, height]).view(1, 2, 1, 1)
@@ -91,7 +95,7 @@ class Update(nn.Module):
         expected = (probs.unsqueeze(1) * displacements(self.radius, probs)).sum(2)
         x = self.convs(torch.cat([probs, expected], 1).to(features1.dtype))
         step = expected + self.delta(x).float()
-        return flow + step / pixels, Match(log_probs, flow, self.level)
+        return flow + step / pixels, Match(log_probs, flow, self.level), x
 
 
 class FlowRefine(nn.Module):
@@ -103,9 +107,14 @@ class FlowRefine(nn.Module):
         variant, width: as :class:`demon_lab.nets.flow_net.FlowNet`.
         iterations: updates at level 2 (their weights shared).
         radius: the level-2 window's reach, level-2 pixels.
+        confidence: a head that reads, from the last level-1 update's hidden features (the shape of its
+            match), each vector's probability of being precise, averaged back to level 2 (starting at 0.5
+            everywhere; trained by ``loss.fit_weight``, the motion fit's weights under
+            ``model.fit_weights=confidence``).
     """
 
-    def __init__(self, variant: str = "v1", width: float = 1.0, iterations: int = 3, radius: int = RADIUS):
+    def __init__(self, variant: str = "v1", width: float = 1.0, iterations: int = 3, radius: int = RADIUS,
+                 confidence: bool = False):
         super().__init__()
         if isinstance(iterations, bool) or not isinstance(iterations, int) or iterations < 1:
             raise ValueError(f"flow_refine: expected null or a number of updates >= 1, got {iterations!r}")
@@ -119,6 +128,13 @@ class FlowRefine(nn.Module):
         self.fine = Conv(c(32), c(32), (3, 3), (1, 1), variant, relu=False)
         self.update = Update(radius, (c(96), c(64)), variant, level=2)
         self.fine_update = Update(FINE_RADIUS, (c(64), c(32)), variant, level=1)
+        self.confidence = None
+        if confidence:
+            self.confidence = nn.Sequential(Conv(c(32), c(32), (3, 3), (1, 1), variant),
+                                            Conv(c(32), 1, (3, 3), (1, 1), variant, relu=False))
+            with torch.no_grad():
+                self.confidence[1].conv.weight.zero_()
+                self.confidence[1].conv.bias.zero_()
 
     def features(self, image: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """An image's unit-length features at level 1 and level 2."""
@@ -129,12 +145,14 @@ class FlowRefine(nn.Module):
         (fine1, coarse1), (fine2, coarse2) = self.features(pair[:, :3]), self.features(pair[:, 3:])
         flows, matches = [], []
         for _ in range(self.iterations):
-            flow, match = self.update(coarse1, coarse2, flow)
+            flow, match, _ = self.update(coarse1, coarse2, flow)
             flows.append(flow)
             matches.append(match)
         fine = F.interpolate(flow, scale_factor=2, mode="bilinear", align_corners=False)
         for _ in range(FINE_UPDATES):
-            fine, match = self.fine_update(fine1, fine2, fine)
+            fine, match, hidden = self.fine_update(fine1, fine2, fine)
             flows.append(F.avg_pool2d(fine, 2))
             matches.append(match)
-        return Refinement(flows, matches)
+        if self.confidence is None:
+            return Refinement(flows, matches)
+        return Refinement(flows, matches, F.avg_pool2d(torch.sigmoid(self.confidence(hidden).float()), 2))

@@ -237,12 +237,14 @@ def describe_stage(job, name: str, upstream: dict[str, str]) -> dict[str, Any]:
 
 
 MODEL_OPTION_FROM = {"dm1_prior": "dm1", "flow2_prior": "flow2", "dm2_prior": "dm2", "motion_fit": "dm1",
-                     "fit_weights": "dm1", "fit_starts": "dm1", "flow_refine": "flow1r"}
-"""Model options that change only the nets from a stage on: the stages before it leave them out of
-their keys (so flow1 is shared between chains with and without ``dm1_prior``, flow1 and dm1
-between chains with and without ``flow2_prior``, flow1, dm1 and flow2 between chains with and
-without ``dm2_prior``, and flow1 between chains with and without ``motion_fit`` or ``flow_refine`` (whose
-net the stage ``flow1r`` trains first)."""
+                     "fit_weights": ("flow1r", "dm1"), "fit_starts": "dm1", "flow_refine": "flow1r"}
+"""Model options that change only the nets from a stage on (of a tuple's stages, the one the chain runs
+first): the stages before it leave them out of their keys (so flow1 is shared between chains with and
+without ``dm1_prior``, flow1 and dm1 between chains with and without ``flow2_prior``, flow1, dm1 and
+flow2 between chains with and without ``dm2_prior``, and flow1 between chains with and without
+``motion_fit`` or ``flow_refine`` (whose net the stage ``flow1r`` trains first;
+``fit_weights=confidence`` gives that net its confidence head, so the option keys ``flow1r`` on where
+the chain has that stage, ``dm1`` on where it has not)."""
 
 
 def _stage_model(model: dict[str, Any], name: str, names: list[str]) -> dict[str, Any]:
@@ -251,7 +253,12 @@ def _stage_model(model: dict[str, Any], name: str, names: list[str]) -> dict[str
     def later(stage: str) -> bool:
         return stage in names and names.index(name) < names.index(stage)
 
-    out = {k: v for k, v in model.items() if not (k in MODEL_OPTION_FROM and later(MODEL_OPTION_FROM[k]))}
+    def first(option: str) -> str:
+        stages = MODEL_OPTION_FROM[option]
+        return stages if isinstance(stages, str) else min((s for s in stages if s in names), key=names.index,
+                                                          default=stages[-1])
+
+    out = {k: v for k, v in model.items() if not (k in MODEL_OPTION_FROM and later(first(k)))}
     if "nets" in out:
         nets = {slot: v for slot, v in out["nets"].items() if not later(slot)}
         out = {k: v for k, v in out.items() if k != "nets"} | ({"nets": nets} if nets else {})

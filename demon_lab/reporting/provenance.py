@@ -33,7 +33,7 @@ DEMON = "DeMoN's design"
 DEPARTURE_MODEL_KEYS = tuple(f"model.{k}" for k in (*PRIOR_KEYS, "correlation", "motion_fit", "fit_weights",
                                                      "fit_starts", "flow_refine"))
 """The model options that depart from DeMoN's nets where set."""
-DEPARTURE_LOSS_KEYS = ("loss.fit_residual", "loss.flow_match")
+DEPARTURE_LOSS_KEYS = ("loss.fit_residual", "loss.flow_match", "loss.fit_weight")
 """The loss weights that depart from DeMoN's losses where set (and not 0)."""
 DEPARTURE_STAGE_OPTION = re.compile(
     r"schedule\.stages\.\w+\.(layers_first|restarts|easy_first|level5_fade|gt_flow_warmup|fresh_scenes|keep_best|joint)$")

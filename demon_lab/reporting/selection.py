@@ -55,10 +55,12 @@ def fetch_runs(uri: str, experiments: Sequence[str]) -> pd.DataFrame:
 
 
 def _mask(runs: pd.DataFrame, match: Mapping[str, Any] | None) -> pd.Series:
-    """The runs whose tags/params equal every value of a row's ``match`` (None matches "None")."""
+    """The runs whose tags/params equal every value of a row's ``match`` (None matches "None" and a run
+    that has no such tag or param: an option added after it ran, or one its run left out)."""
     mask = pd.Series(True, index=runs.index)
     for k, v in (match or {}).items():
-        mask &= field(runs, k).eq("None" if v is None else str(v))
+        found = field(runs, k)
+        mask &= (found.eq("None") | found.isna()) if v is None else found.eq(str(v))
     return mask
 
 

@@ -10,7 +10,7 @@ import torch
 
 from demon_lab.core import losses
 from demon_lab.core.losses import DEPTH_MOTION_WEIGHTS, REFINED_FLOW_WEIGHTS
-from demon_lab.nets.chain import DeMoN, Prediction, ground_truth_inputs
+from demon_lab.nets.chain import DeMoN, Prediction, ground_truth_inputs, refined
 from demon_lab.pipeline.config import ConfigError, expect_flag, expect_fraction
 from demon_lab.pipeline.kinds.base import StageSpec, pair_priors, prediction_fields
 
@@ -34,7 +34,7 @@ class DepthMotionStage(StageSpec):
 
     kind: ClassVar[str] = "depth_motion"
     oracles: ClassVar[tuple[str | None, ...]] = (None, "flow")
-    loss_weights: ClassVar[tuple[str, ...]] = DEPTH_MOTION_WEIGHTS
+    loss_weights: ClassVar[tuple[str, ...]] = (*DEPTH_MOTION_WEIGHTS, "fit_weight")
     scores_motion: ClassVar[bool] = True
     best_metric: ClassVar[str] = "tran_deg"  # the motion the depth's scale and the next pass rest on
     net: str = "dm1"
@@ -68,9 +68,11 @@ class DepthMotionStage(StageSpec):
             flow, conf = stage.frozen(functools.partial(_unrefined_flow_and_conf, chain), pair, *pair_priors(batch))
             refinement = chain.refine_flow(pair, flow)
             flow_total, flow_terms = losses.refined_flow_loss(refinement, gt, stage.weights)
-            dm = chain.depth_motion1(pair, image2_2, refinement.flows[-1], conf, K)
+            flow, conf = refined(refinement, conf)
+            dm = chain.depth_motion1(pair, image2_2, flow, conf, K)
             total, terms = losses.depth_motion_loss(dm.inv_depth, dm.normals, dm.motion, gt, stage.weights,
-                                                    ramp=stage.ramp(2.0), intrinsics=K)
+                                                    ramp=stage.ramp(2.0), intrinsics=K,
+                                                    fit_weights=_fit_weights(stage, dm), fit_flow=flow)
             return total + flow_total, {**terms, **flow_terms}
         if self.net == "dm1" and not given:
             flow, conf, *prior = stage.frozen(functools.partial(_bootstrap_flow, chain), pair, K, *pair_priors(batch))
@@ -89,7 +91,15 @@ class DepthMotionStage(StageSpec):
             dm = chain.depth_motion2(pair, image2_2, flow, conf, prev.motion, K)
         ramp = stage.ramp(2.0 if self.net == "dm1" else 1.0)
         return losses.depth_motion_loss(dm.inv_depth, dm.normals, dm.motion, gt, stage.weights, ramp=ramp,
-                                        intrinsics=K)
+                                        intrinsics=K, fit_weights=_fit_weights(stage, dm), fit_flow=flow)
+
+
+def _fit_weights(stage, dm):
+    """The motion fit's weights for ``loss.fit_weight``: an error where that weight is set and the net
+    predicts none (no ``model.motion_fit``)."""
+    if stage.weights.get("fit_weight", 0.0) > 0 and dm.weights is None:
+        raise ConfigError("loss.fit_weight: classifies the motion fit's per-pixel weights; set model.motion_fit")
+    return dm.weights
 
 
 def _unrefined_flow_and_conf(chain: DeMoN, pair, prior_flow=None, prior_motion=None):
