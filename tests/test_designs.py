@@ -338,9 +338,9 @@ def test_a_profiled_stage_logs_its_loops_largest_parts_and_keeps_its_keys():
 @pytest.mark.slow
 def test_the_fit_design_trains_every_stage_with_its_flow_refinement_motion_fit_and_geometric_residual(tmp_path):
     """design=fit end to end at the smoke scale: every stage run FINISHED, flow1r (between flow1 and dm1)
-    trains the flow refinement on its sequence loss (and its confidence head), dm1, dm2 and the iterative stage log the fitted
-    motion's geometric residual among their loss terms (dm1 and dm2 also their weights' classification,
-    loss.fit_weight), and the passes' motions are scored."""
+    trains the flow refinement on its sequence loss (and its confidence head), dm1, dm2 and the iterative
+    stage log the fitted motion's geometric residual among their loss terms (dm1 and dm2 also their
+    weights' classification, loss.fit_weight), and the passes' motions are scored."""
     from demon_lab.app.job import run
 
     steps = [f"scale.steps.{s}={n}" for s, n in (("flow1", 4), ("flow1r", 4), ("dm1", 4), ("flow2", 2), ("dm2", 2),

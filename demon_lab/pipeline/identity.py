@@ -51,8 +51,8 @@ NEUTRAL: dict[str, Any] = {
     "model.compat": None, "model.weights": None, "model.correlation": None,
     "model.flow1_prior": None, "model.dm1_prior": None, "model.flow2_prior": None, "model.dm2_prior": None,
     "precision": "32-true", "eval.ceiling": False, "model.motion_fit": None, "loss.fit_residual": 0.0,
-    "loss.flow_match": 0.0, "model.flow_refine": None, "schedule.order": None, "model.fit_weights": "learned",
-    "model.fit_starts": 0,
+    "loss.flow_match": 0.0, "loss.fit_weight": 0.0, "model.flow_refine": None, "schedule.order": None,
+    "model.fit_weights": "learned", "model.fit_starts": 0,
     "model.nets": {"flow1": None, "dm1": None, "flow2": None, "dm2": None, "refine": None},
     **{f"model.nets.{slot}": None for slot in ("flow1", "dm1", "flow2", "dm2", "refine")},
 }
