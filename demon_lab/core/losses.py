@@ -220,9 +220,9 @@ def fit_weight_loss(fit_weights: torch.Tensor, flow: torch.Tensor, truth: torch.
 
     The fit's motion loss alone moves them by a gradient through the solver, summed over every pixel of
     the pair; Yi et al. (CVPR 2018, "Learning to Find Good Correspondences", Section 4) found that loss
-    alone does not train the weights from scratch and classify each correspondence as well. The
-    committed fit design's weights without this loss fit worse than uniform weights
-    (docs/notes/2026-12-learned-motion.md)."""
+    alone does not train the weights from scratch and classify each correspondence as well. The fit
+    design's weights trained without this loss read the motion worse than RANSAC on the same flow
+    (docs/notes/2026-12-learned-motion.md, the ceiling table's row "no loss.fit_weight")."""
     height, width = flow.shape[2:]
     pixels = flow.new_tensor([4 * width, 4 * height]).view(1, 2, 1, 1)
     error = ((flow.detach().float() - truth) * pixels).norm(dim=1, keepdim=True)
